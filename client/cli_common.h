@@ -1,0 +1,52 @@
+#pragma once
+/// \file
+/// Shared pieces of the `surfel` command-line tool: the command registry, reports, exit codes.
+
+#include <CLI/CLI.hpp>
+#include <functional>
+#include <nlohmann/json.hpp>
+#include <string>
+
+#include "surfel/base/point_cloud.h"
+#include "surfel/base/progress.h"
+
+namespace surfel::cli {
+
+/// Exit codes of every subcommand (documented in `surfel --help` and the README).
+inline constexpr int kExitOk = 0;
+inline constexpr int kExitFailure = 1;
+inline constexpr int kExitUsage = 2;
+
+/// A usage mistake found after parsing (a value that is valid syntax but not meaningful): exit 2.
+struct UsageError : std::runtime_error {
+    using std::runtime_error::runtime_error;
+};
+
+/// Options every job subcommand shares.
+struct CommonFlags {
+    bool json = false;   ///< Print the report as one JSON object on stdout.
+    bool quiet = false;  ///< No progress on stderr.
+};
+
+/// Adds --json and --quiet to a job subcommand.
+void AddCommonFlags(CLI::App* sub, CommonFlags* flags);
+
+/// Prints a report: one JSON object when flags.json, else "key: value" lines.
+void PrintReport(const nlohmann::json& report, const CommonFlags& flags);
+
+/// A progress hook that draws a one-line bar on stderr when it is a terminal (and not quiet).
+ProgressFn MakeProgressBar(const std::string& label, const CommonFlags& flags);
+
+/// JSON for a bounding box: {"min": [..], "max": [..], "diagonal": d}.
+nlohmann::json BoundsJson(const BoundingBox& box);
+
+/// Reads a point-cloud file named on the command line.
+PointCloud LoadCloud(const std::string& path);
+/// Writes a point-cloud file (PLY or XYZ by extension; binary PLY unless ascii).
+void SaveCloud(const PointCloud& cloud, const std::string& path, bool ascii = false);
+
+/// Each module of the CLI registers its subcommands here.
+void RegisterIoCommands(CLI::App& app);
+void RegisterSurfaceCommands(CLI::App& app);
+
+}  // namespace surfel::cli

@@ -1,0 +1,47 @@
+# Every dependency comes from Debian 12's packages. A missing one stops configure with the name
+# of the package that provides it (scripts/install-deps installs them all).
+include_guard(GLOBAL)
+find_package(PkgConfig)
+if(NOT PkgConfig_FOUND)
+    message(FATAL_ERROR "pkg-config not found: apt-get install pkg-config (or run scripts/install-deps)")
+endif()
+
+macro(surfel_require_package name debian)
+    find_package(${name} ${ARGN} QUIET)
+    if(NOT ${name}_FOUND)
+        message(FATAL_ERROR "${name} not found: apt-get install ${debian} (or run scripts/install-deps)")
+    endif()
+endmacro()
+
+macro(surfel_require_pkgconfig prefix module debian)
+    pkg_check_modules(${prefix} QUIET IMPORTED_TARGET ${module})
+    if(NOT ${prefix}_FOUND)
+        message(FATAL_ERROR "${module} (pkg-config) not found: apt-get install ${debian} (or run scripts/install-deps)")
+    endif()
+endmacro()
+
+surfel_require_package(Eigen3 libeigen3-dev 3.3 NO_MODULE)
+surfel_require_package(TBB libtbb-dev CONFIG)
+surfel_require_package(embree libembree-dev 3)
+surfel_require_package(CLI11 libcli11-dev CONFIG)
+surfel_require_package(spdlog libspdlog-dev CONFIG)
+surfel_require_package(Threads libc6-dev)
+# FLANN has no CMake config on Debian; pkg-config works (it pulls lz4).
+surfel_require_pkgconfig(FLANN flann libflann-dev)
+# OpenImageIO's CMake config points at /usr/include/opencv4 and breaks generation; use pkg-config.
+surfel_require_pkgconfig(OIIO OpenImageIO libopenimageio-dev)
+
+if(SURFEL_BUILD_TESTS)
+    surfel_require_package(GTest libgtest-dev)
+endif()
+if(SURFEL_BUILD_BENCH)
+    surfel_require_package(benchmark libbenchmark-dev)
+endif()
+
+# The service's dependencies (gRPC needs protobuf-compiler-grpc installed to configure).
+option(SURFEL_REQUIRE_SERVICE_DEPS "Check for gRPC, Protobuf and SQLiteCpp at configure time" ON)
+if(SURFEL_REQUIRE_SERVICE_DEPS)
+    surfel_require_package(Protobuf "libprotobuf-dev protobuf-compiler")
+    surfel_require_package(gRPC "libgrpc++-dev protobuf-compiler-grpc" CONFIG)
+    surfel_require_package(SQLiteCpp libsqlitecpp-dev CONFIG)
+endif()

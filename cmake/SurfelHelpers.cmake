@@ -1,0 +1,36 @@
+include_guard(GLOBAL)
+
+# Warnings for our own code only (never for generated or third-party code).
+add_library(surfel_warnings INTERFACE)
+target_compile_options(surfel_warnings INTERFACE -Wall -Wextra -Wpedantic -Wshadow
+                       -Wnon-virtual-dtor $<$<BOOL:${SURFEL_WERROR}>:-Werror>)
+
+# Sanitizers apply to everything we build, so the tests exercise them.
+if(SURFEL_SANITIZE)
+    add_compile_options(-fsanitize=address,undefined -fno-omit-frame-pointer -fno-sanitize-recover=all)
+    add_link_options(-fsanitize=address,undefined)
+endif()
+
+# surfel_add_module(NAME SOURCES ... DEPS ... [PRIVATE_DEPS ...])
+# One static library per core module, named surfel_<NAME>, with core/ on the include path.
+function(surfel_add_module name)
+    cmake_parse_arguments(ARG "" "" "SOURCES;DEPS;PRIVATE_DEPS" ${ARGN})
+    add_library(surfel_${name} STATIC ${ARG_SOURCES})
+    add_library(surfel::${name} ALIAS surfel_${name})
+    target_include_directories(surfel_${name} PUBLIC ${PROJECT_SOURCE_DIR}/core)
+    target_link_libraries(surfel_${name} PUBLIC ${ARG_DEPS} PRIVATE ${ARG_PRIVATE_DEPS} surfel_warnings)
+    set_target_properties(surfel_${name} PROPERTIES POSITION_INDEPENDENT_CODE ON)
+endfunction()
+
+# surfel_add_test(NAME SOURCES ... DEPS ...): one GoogleTest binary per module.
+function(surfel_add_test name)
+    cmake_parse_arguments(ARG "" "" "SOURCES;DEPS" ${ARGN})
+    add_executable(${name} ${ARG_SOURCES})
+    target_link_libraries(${name} PRIVATE ${ARG_DEPS} GTest::gtest GTest::gtest_main surfel_warnings)
+    target_compile_options(${name} PRIVATE -Wno-dangling-else)  # EXPECT_* after a bare if
+    target_compile_definitions(${name} PRIVATE
+        SURFEL_SHARED_DATA_DIR="${PROJECT_SOURCE_DIR}/../shared/data"
+        SURFEL_BIN_DIR="${CMAKE_RUNTIME_OUTPUT_DIRECTORY}")
+    set_target_properties(${name} PROPERTIES RUNTIME_OUTPUT_DIRECTORY ${CMAKE_BINARY_DIR}/tests)
+    gtest_discover_tests(${name} DISCOVERY_TIMEOUT 60 PROPERTIES TIMEOUT 300)
+endfunction()

@@ -1,0 +1,852 @@
+#include "surfel/io/ply.h"
+
+#include <algorithm>
+#include <bit>
+#include <charconv>
+#include <cmath>
+#include <cstring>
+#include <filesystem>
+#include <fstream>
+#include <optional>
+#include <sstream>
+
+#include "surfel/base/error.h"
+
+namespace surfel {
+namespace {
+
+// ---- Errors ---------------------------------------------------------------------------------
+
+[[noreturn]] void Fail(std::string_view file, const std::string& message) {
+    throw Error(ErrorCode::kInvalidArgument, std::string(file) + ": " + message);
+}
+
+// ---- Header model ---------------------------------------------------------------------------
+
+struct Property {
+    std::string name;
+    bool is_list = false;
+    ScalarType type = ScalarType::kFloat32;        // value type; item type for a list
+    ScalarType count_type = ScalarType::kUInt8;    // only for lists
+};
+
+struct Element {
+    std::string name;
+    std::uint64_t count = 0;
+    int header_line = 0;
+    std::vector<Property> props;
+
+    bool HasLists() const {
+        return std::any_of(props.begin(), props.end(), [](const Property& p) { return p.is_list; });
+    }
+    // Size of one record without lists' items (the full size when there are no lists).
+    std::size_t FixedSize() const {
+        std::size_t s = 0;
+        for (const auto& p : props) s += ScalarSize(p.is_list ? p.count_type : p.type);
+        return s;
+    }
+    int Find(std::string_view n) const {
+        for (std::size_t i = 0; i < props.size(); ++i)
+            if (props[i].name == n && !props[i].is_list) return static_cast<int>(i);
+        return -1;
+    }
+};
+
+struct Header {
+    PlyFormat format = PlyFormat::kAscii;
+    std::vector<Element> elements;
+    std::vector<std::string> comments;
+    std::size_t body_offset = 0;
+    int body_line = 1;  // 1-based line number where the body starts (for ascii messages)
+};
+
+std::optional<ScalarType> ParseScalarType(std::string_view s) {
+    static constexpr std::pair<std::string_view, ScalarType> kTypes[] = {
+        {"char", ScalarType::kInt8},      {"int8", ScalarType::kInt8},
+        {"uchar", ScalarType::kUInt8},    {"uint8", ScalarType::kUInt8},
+        {"short", ScalarType::kInt16},    {"int16", ScalarType::kInt16},
+        {"ushort", ScalarType::kUInt16},  {"uint16", ScalarType::kUInt16},
+        {"int", ScalarType::kInt32},      {"int32", ScalarType::kInt32},
+        {"uint", ScalarType::kUInt32},    {"uint32", ScalarType::kUInt32},
+        {"float", ScalarType::kFloat32},  {"float32", ScalarType::kFloat32},
+        {"double", ScalarType::kFloat64}, {"float64", ScalarType::kFloat64},
+    };
+    for (const auto& [name, type] : kTypes)
+        if (name == s) return type;
+    return std::nullopt;
+}
+
+bool IsFloatType(ScalarType t) { return t == ScalarType::kFloat32 || t == ScalarType::kFloat64; }
+
+std::vector<std::string_view> Tokenize(std::string_view line) {
+    std::vector<std::string_view> out;
+    std::size_t i = 0;
+    while (i < line.size()) {
+        while (i < line.size() && (line[i] == ' ' || line[i] == '\t' || line[i] == '\r')) ++i;
+        std::size_t j = i;
+        while (j < line.size() && line[j] != ' ' && line[j] != '\t' && line[j] != '\r') ++j;
+        if (j > i) out.push_back(line.substr(i, j - i));
+        i = j;
+    }
+    return out;
+}
+
+std::string Quote(std::string_view s) {
+    std::string q = "'";
+    for (char c : s.substr(0, 40)) q += (static_cast<unsigned char>(c) < 32 || c == 127) ? '?' : c;
+    if (s.size() > 40) q += "...";
+    return q + "'";
+}
+
+Header ParseHeader(std::string_view data, std::string_view file, const PlyReadOptions& opt) {
+    Header h;
+    std::size_t pos = 0;
+    int line_no = 0;
+    bool have_format = false;
+    auto next_line = [&](std::string_view* line) {
+        if (pos >= data.size()) return false;
+        std::size_t end = data.find('\n', pos);
+        if (end == std::string_view::npos) end = data.size();
+        if (end > opt.max_header_bytes)
+            Fail(file, "header is larger than " + std::to_string(opt.max_header_bytes) +
+                           " bytes (no end_header within the limit)");
+        *line = data.substr(pos, end - pos);
+        if (!line->empty() && line->back() == '\r') line->remove_suffix(1);
+        pos = std::min(end + 1, data.size() + 1);
+        ++line_no;
+        return true;
+    };
+    std::string_view line;
+    if (!next_line(&line) || line != "ply") Fail(file, "not a PLY file (the first line must be 'ply')");
+    for (;;) {
+        if (!next_line(&line)) Fail(file, "header ends without 'end_header' (after line " + std::to_string(line_no) + ")");
+        const std::string where = "header line " + std::to_string(line_no) + ": ";
+        auto tok = Tokenize(line);
+        if (tok.empty()) continue;
+        const std::string_view kw = tok[0];
+        if (kw == "comment" || kw == "obj_info") {
+            std::string_view rest = line.substr(std::min(line.size(), kw.size() + 1));
+            h.comments.emplace_back(rest);
+        } else if (kw == "format") {
+            if (have_format) Fail(file, where + "second 'format' line");
+            if (tok.size() != 3) Fail(file, where + "expected 'format <ascii|binary_little_endian|binary_big_endian> 1.0'");
+            if (tok[1] == "ascii") h.format = PlyFormat::kAscii;
+            else if (tok[1] == "binary_little_endian") h.format = PlyFormat::kBinaryLittleEndian;
+            else if (tok[1] == "binary_big_endian") h.format = PlyFormat::kBinaryBigEndian;
+            else Fail(file, where + "unknown format " + Quote(tok[1]) + " (expected ascii, binary_little_endian or binary_big_endian)");
+            if (tok[2] != "1.0" && tok[2] != "1") Fail(file, where + "unsupported PLY version " + Quote(tok[2]) + " (expected 1.0)");
+            have_format = true;
+        } else if (kw == "element") {
+            if (!have_format) Fail(file, where + "'element' before the 'format' line");
+            if (tok.size() != 3) Fail(file, where + "expected 'element <name> <count>'");
+            Element e;
+            e.name = std::string(tok[1]);
+            e.header_line = line_no;
+            auto [p, ec] = std::from_chars(tok[2].data(), tok[2].data() + tok[2].size(), e.count);
+            if (ec != std::errc() || p != tok[2].data() + tok[2].size())
+                Fail(file, where + "element " + Quote(e.name) + " has an invalid count " + Quote(tok[2]));
+            for (const auto& other : h.elements)
+                if (other.name == e.name) Fail(file, where + "element " + Quote(e.name) + " declared twice");
+            const std::uint64_t limit = e.name == "vertex" ? opt.max_points
+                                        : e.name == "face" ? opt.max_faces
+                                                           : opt.max_elements;
+            if (e.count > limit)
+                throw Error(ErrorCode::kResourceExhausted,
+                            std::string(file) + ": " + where + "element '" + e.name + "' has " +
+                                std::to_string(e.count) + " records, over the limit of " +
+                                std::to_string(limit));
+            h.elements.push_back(std::move(e));
+        } else if (kw == "property") {
+            if (h.elements.empty()) Fail(file, where + "'property' before any 'element'");
+            Element& e = h.elements.back();
+            Property p;
+            if (tok.size() >= 2 && tok[1] == "list") {
+                if (tok.size() != 5) Fail(file, where + "expected 'property list <count type> <item type> <name>'");
+                auto ct = ParseScalarType(tok[2]);
+                auto it = ParseScalarType(tok[3]);
+                if (!ct) Fail(file, where + "unknown type " + Quote(tok[2]) + " for the count of list " + Quote(tok[4]));
+                if (!it) Fail(file, where + "unknown type " + Quote(tok[3]) + " for the items of list " + Quote(tok[4]));
+                if (IsFloatType(*ct)) Fail(file, where + "list " + Quote(tok[4]) + " has a floating-point count type");
+                p.is_list = true;
+                p.count_type = *ct;
+                p.type = *it;
+                p.name = std::string(tok[4]);
+            } else {
+                if (tok.size() != 3) Fail(file, where + "expected 'property <type> <name>'");
+                auto t = ParseScalarType(tok[1]);
+                if (!t) Fail(file, where + "unknown type " + Quote(tok[1]) + " for property " + Quote(tok[2]));
+                p.type = *t;
+                p.name = std::string(tok[2]);
+            }
+            for (const auto& q : e.props)
+                if (q.name == p.name) Fail(file, where + "property " + Quote(p.name) + " declared twice in element '" + e.name + "'");
+            e.props.push_back(std::move(p));
+        } else if (kw == "end_header") {
+            if (tok.size() != 1) Fail(file, where + "unexpected text after 'end_header'");
+            break;
+        } else {
+            Fail(file, where + "unknown keyword " + Quote(kw) +
+                           " (expected comment, obj_info, format, element, property or end_header)");
+        }
+    }
+    if (!have_format) Fail(file, "header has no 'format' line");
+    h.body_offset = std::min(pos, data.size());
+    h.body_line = line_no + 1;
+    return h;
+}
+
+// ---- Destinations for values ------------------------------------------------------------------
+
+// Where the values of one property go: a float or double column with a stride, or nowhere.
+struct Sink {
+    float* f = nullptr;
+    double* d = nullptr;
+    std::size_t stride = 1;
+    float divisor = 1.0f;  // 255 for uchar colours
+    bool active() const { return f || d; }
+    void Put(std::size_t i, double v) const {
+        if (f) f[i * stride] = static_cast<float>(v) / divisor;
+        else if (d) d[i * stride] = v;
+    }
+};
+
+// ---- Binary loads -------------------------------------------------------------------------------
+
+template <typename T>
+T LoadRaw(const char* p, bool swap) {
+    T v;
+    std::memcpy(&v, p, sizeof(T));
+    if constexpr (sizeof(T) > 1) {
+        if (swap) {
+            using U = std::conditional_t<sizeof(T) == 2, std::uint16_t,
+                                         std::conditional_t<sizeof(T) == 4, std::uint32_t, std::uint64_t>>;
+            U u;
+            std::memcpy(&u, &v, sizeof(T));
+            if constexpr (sizeof(T) == 2) u = __builtin_bswap16(u);
+            else if constexpr (sizeof(T) == 4) u = __builtin_bswap32(u);
+            else u = __builtin_bswap64(u);
+            std::memcpy(&v, &u, sizeof(T));
+        }
+    }
+    return v;
+}
+
+double LoadAsDouble(const char* p, ScalarType t, bool swap) {
+    switch (t) {
+        case ScalarType::kInt8: return LoadRaw<std::int8_t>(p, swap);
+        case ScalarType::kUInt8: return LoadRaw<std::uint8_t>(p, swap);
+        case ScalarType::kInt16: return LoadRaw<std::int16_t>(p, swap);
+        case ScalarType::kUInt16: return LoadRaw<std::uint16_t>(p, swap);
+        case ScalarType::kInt32: return LoadRaw<std::int32_t>(p, swap);
+        case ScalarType::kUInt32: return LoadRaw<std::uint32_t>(p, swap);
+        case ScalarType::kFloat32: return LoadRaw<float>(p, swap);
+        case ScalarType::kFloat64: return LoadRaw<double>(p, swap);
+    }
+    return 0.0;
+}
+
+// Column extraction for fixed-size records: the hot loop of binary reading.
+template <typename T>
+void ExtractColumnT(const char* base, std::size_t rec, std::size_t n, std::size_t off, bool swap, const Sink& s) {
+    if (s.f) {
+        const float div = s.divisor;
+        if (div == 1.0f) {
+            for (std::size_t i = 0; i < n; ++i) s.f[i * s.stride] = static_cast<float>(LoadRaw<T>(base + i * rec + off, swap));
+        } else {
+            for (std::size_t i = 0; i < n; ++i) s.f[i * s.stride] = static_cast<float>(LoadRaw<T>(base + i * rec + off, swap)) / div;
+        }
+    } else {
+        for (std::size_t i = 0; i < n; ++i) s.d[i * s.stride] = static_cast<double>(LoadRaw<T>(base + i * rec + off, swap));
+    }
+}
+
+void ExtractColumn(ScalarType t, const char* base, std::size_t rec, std::size_t n, std::size_t off, bool swap, const Sink& s) {
+    switch (t) {
+        case ScalarType::kInt8: return ExtractColumnT<std::int8_t>(base, rec, n, off, swap, s);
+        case ScalarType::kUInt8: return ExtractColumnT<std::uint8_t>(base, rec, n, off, swap, s);
+        case ScalarType::kInt16: return ExtractColumnT<std::int16_t>(base, rec, n, off, swap, s);
+        case ScalarType::kUInt16: return ExtractColumnT<std::uint16_t>(base, rec, n, off, swap, s);
+        case ScalarType::kInt32: return ExtractColumnT<std::int32_t>(base, rec, n, off, swap, s);
+        case ScalarType::kUInt32: return ExtractColumnT<std::uint32_t>(base, rec, n, off, swap, s);
+        case ScalarType::kFloat32: return ExtractColumnT<float>(base, rec, n, off, swap, s);
+        case ScalarType::kFloat64: return ExtractColumnT<double>(base, rec, n, off, swap, s);
+    }
+}
+
+// ---- ASCII values -------------------------------------------------------------------------------
+
+// Parses one ascii token as a value of type t; false when it is not one (or out of range).
+bool ParseAsciiValue(std::string_view tok, ScalarType t, double* out) {
+    const char* b = tok.data();
+    const char* e = tok.data() + tok.size();
+    if (t == ScalarType::kFloat32) {
+        float v;
+        auto [p, ec] = std::from_chars(b, e, v);
+        if (ec != std::errc() || p != e) return false;
+        *out = v;
+        return true;
+    }
+    if (t == ScalarType::kFloat64) {
+        double v;
+        auto [p, ec] = std::from_chars(b, e, v);
+        if (ec != std::errc() || p != e) return false;
+        *out = v;
+        return true;
+    }
+    if (b != e && *b == '+') ++b;
+    std::int64_t v;
+    auto [p, ec] = std::from_chars(b, e, v);
+    if (ec != std::errc() || p != e) return false;
+    std::int64_t lo = 0, hi = 0;
+    switch (t) {
+        case ScalarType::kInt8: lo = -128; hi = 127; break;
+        case ScalarType::kUInt8: lo = 0; hi = 255; break;
+        case ScalarType::kInt16: lo = -32768; hi = 32767; break;
+        case ScalarType::kUInt16: lo = 0; hi = 65535; break;
+        case ScalarType::kInt32: lo = INT32_MIN; hi = INT32_MAX; break;
+        case ScalarType::kUInt32: lo = 0; hi = UINT32_MAX; break;
+        default: break;
+    }
+    if (v < lo || v > hi) return false;
+    *out = static_cast<double>(v);
+    return true;
+}
+
+// ---- Body reading -------------------------------------------------------------------------------
+
+struct FaceSink {
+    std::vector<std::array<std::uint32_t, 3>>* triangles = nullptr;
+    int list_index = -1;  // property index of vertex_indices / vertex_index
+    std::uint64_t polygons = 0;
+};
+
+class BodyReader {
+public:
+    BodyReader(std::string_view data, std::string_view file, const Header& h)
+        : data_(data), file_(file), h_(h), pos_(h.body_offset), line_(h.body_line),
+          swap_((h.format == PlyFormat::kBinaryBigEndian) == (std::endian::native == std::endian::little)) {}
+
+    std::size_t remaining() const { return data_.size() - pos_; }
+
+    // Upper bound on how many records of `e` the remaining data can hold (to size arrays safely).
+    std::uint64_t MaxRecords(const Element& e) const {
+        if (h_.format == PlyFormat::kAscii) {
+            std::uint64_t lines = 1 + static_cast<std::uint64_t>(std::count(data_.begin() + pos_, data_.end(), '\n'));
+            return std::min<std::uint64_t>(e.count, lines);
+        }
+        const std::size_t fs = e.FixedSize();
+        if (fs == 0) return e.count;
+        return std::min<std::uint64_t>(e.count, remaining() / fs);
+    }
+
+    // Reads all records of `e`; sinks[i] receives scalar property i. `faces` handles the list.
+    void Read(const Element& e, const std::vector<Sink>& sinks, FaceSink* faces) {
+        if (h_.format != PlyFormat::kAscii && !e.HasLists()) return ReadFixedBinary(e, sinks);
+        std::vector<std::uint32_t> poly;
+        for (std::uint64_t i = 0; i < e.count; ++i) {
+            if (h_.format == PlyFormat::kAscii) ReadAsciiRecord(e, i, sinks, faces, poly);
+            else ReadBinaryRecord(e, i, sinks, faces, poly);
+        }
+    }
+
+    void Finish() {
+        if (h_.format == PlyFormat::kAscii) {
+            for (std::size_t p = pos_; p < data_.size(); ++p) {
+                const char c = data_[p];
+                if (c == '\n') ++line_;
+                else if (c != ' ' && c != '\t' && c != '\r')
+                    Fail(file_, "line " + std::to_string(line_) + ": unexpected data after the last element (the header's counts do not match the data)");
+            }
+        } else if (remaining() > 0) {
+            // Some writers end binary files with a newline; anything else is a count mismatch.
+            for (std::size_t p = pos_; p < data_.size(); ++p)
+                if (data_[p] != '\n' && data_[p] != '\r' && data_[p] != ' ' && data_[p] != '\0')
+                    Fail(file_, std::to_string(remaining()) + " bytes of unexpected data after the last element (byte offset " + std::to_string(pos_) + "; the header's counts do not match the data)");
+        }
+    }
+
+private:
+    [[noreturn]] void Truncated(const Element& e, std::uint64_t i) const {
+        Fail(file_, "truncated data: element '" + e.name + "' declares " + std::to_string(e.count) +
+                        " records but the file ends in record " + std::to_string(i) + " (byte offset " +
+                        std::to_string(data_.size()) + ")");
+    }
+
+    void ReadFixedBinary(const Element& e, const std::vector<Sink>& sinks) {
+        const std::size_t rec = e.FixedSize();
+        const std::uint64_t n = e.count;
+        if (rec > 0 && n > remaining() / rec) Truncated(e, remaining() / rec);
+        const char* base = data_.data() + pos_;
+        std::size_t off = 0;
+        for (std::size_t k = 0; k < e.props.size(); ++k) {
+            if (sinks.size() > k && sinks[k].active()) ExtractColumn(e.props[k].type, base, rec, n, off, swap_, sinks[k]);
+            off += ScalarSize(e.props[k].type);
+        }
+        pos_ += rec * n;
+    }
+
+    void ReadBinaryRecord(const Element& e, std::uint64_t i, const std::vector<Sink>& sinks, FaceSink* faces,
+                          std::vector<std::uint32_t>& poly) {
+        for (std::size_t k = 0; k < e.props.size(); ++k) {
+            const Property& p = e.props[k];
+            if (!p.is_list) {
+                const int sz = ScalarSize(p.type);
+                if (remaining() < static_cast<std::size_t>(sz)) Truncated(e, i);
+                if (sinks.size() > k && sinks[k].active()) sinks[k].Put(i, LoadAsDouble(data_.data() + pos_, p.type, swap_));
+                pos_ += sz;
+                continue;
+            }
+            const int csz = ScalarSize(p.count_type);
+            if (remaining() < static_cast<std::size_t>(csz)) Truncated(e, i);
+            const double cnt = LoadAsDouble(data_.data() + pos_, p.count_type, swap_);
+            pos_ += csz;
+            if (cnt < 0) Fail(file_, "element '" + e.name + "' " + std::to_string(i) + ": list '" + p.name + "' has a negative length");
+            const std::uint64_t m = static_cast<std::uint64_t>(cnt);
+            const std::size_t isz = ScalarSize(p.type);
+            if (m > remaining() / isz) Truncated(e, i);
+            if (faces && static_cast<int>(k) == faces->list_index) {
+                poly.clear();
+                for (std::uint64_t j = 0; j < m; ++j) {
+                    const double v = LoadAsDouble(data_.data() + pos_ + j * isz, p.type, swap_);
+                    poly.push_back(v < 0 || v > 4294967295.0 ? UINT32_MAX : static_cast<std::uint32_t>(v));
+                }
+                AddPolygon(e, i, poly, faces);
+            }
+            pos_ += m * isz;
+        }
+    }
+
+    void ReadAsciiRecord(const Element& e, std::uint64_t i, const std::vector<Sink>& sinks, FaceSink* faces,
+                         std::vector<std::uint32_t>& poly) {
+        std::string_view line;
+        for (;;) {  // next non-blank line
+            if (pos_ >= data_.size())
+                Fail(file_, "line " + std::to_string(line_) + ": unexpected end of file: element '" + e.name + "' declares " +
+                                std::to_string(e.count) + " records, found " + std::to_string(i));
+            std::size_t end = data_.find('\n', pos_);
+            if (end == std::string_view::npos) end = data_.size();
+            line = data_.substr(pos_, end - pos_);
+            pos_ = end + 1;
+            ++line_;
+            if (line.find_first_not_of(" \t\r") != std::string_view::npos) break;
+        }
+        const int ln = line_ - 1;
+        toks_ = Tokenize(line);
+        std::size_t t = 0;
+        auto where = [&](const Property& p) {
+            return "line " + std::to_string(ln) + ": " + e.name + " " + std::to_string(i) + ", field '" + p.name + "': ";
+        };
+        for (std::size_t k = 0; k < e.props.size(); ++k) {
+            const Property& p = e.props[k];
+            double v = 0.0;
+            if (!p.is_list) {
+                if (t >= toks_.size()) Fail(file_, where(p) + "missing value (the line has " + std::to_string(toks_.size()) + " values)");
+                if (!ParseAsciiValue(toks_[t], p.type, &v))
+                    Fail(file_, where(p) + Quote(toks_[t]) + " is not a valid " + ScalarTypeName(p.type));
+                ++t;
+                if (sinks.size() > k && sinks[k].active()) sinks[k].Put(i, v);
+                continue;
+            }
+            if (t >= toks_.size()) Fail(file_, where(p) + "missing list length");
+            if (!ParseAsciiValue(toks_[t], p.count_type, &v) || v < 0)
+                Fail(file_, where(p) + Quote(toks_[t]) + " is not a valid list length");
+            ++t;
+            const std::uint64_t m = static_cast<std::uint64_t>(v);
+            if (m > toks_.size() - t)
+                Fail(file_, where(p) + "list declares " + std::to_string(m) + " items but the line has " + std::to_string(toks_.size() - t));
+            const bool keep = faces && static_cast<int>(k) == faces->list_index;
+            if (keep) poly.clear();
+            for (std::uint64_t j = 0; j < m; ++j, ++t) {
+                if (!ParseAsciiValue(toks_[t], p.type, &v))
+                    Fail(file_, where(p) + Quote(toks_[t]) + " is not a valid " + ScalarTypeName(p.type));
+                if (keep) poly.push_back(v < 0 || v > 4294967295.0 ? UINT32_MAX : static_cast<std::uint32_t>(v));
+            }
+            if (keep) AddPolygon(e, i, poly, faces);
+        }
+        if (t != toks_.size())
+            Fail(file_, "line " + std::to_string(ln) + ": " + e.name + " " + std::to_string(i) + " has " +
+                            std::to_string(toks_.size()) + " values, expected " + std::to_string(t));
+    }
+
+    void AddPolygon(const Element& e, std::uint64_t i, const std::vector<std::uint32_t>& poly, FaceSink* faces) {
+        if (poly.size() < 3)
+            Fail(file_, "element '" + e.name + "' " + std::to_string(i) + ": a face needs at least 3 vertices, has " + std::to_string(poly.size()));
+        ++faces->polygons;
+        for (std::size_t j = 1; j + 1 < poly.size(); ++j) faces->triangles->push_back({poly[0], poly[j], poly[j + 1]});
+    }
+
+    std::string_view data_;
+    std::string_view file_;
+    const Header& h_;
+    std::size_t pos_;
+    int line_;
+    bool swap_;
+    std::vector<std::string_view> toks_;
+};
+
+}  // namespace
+
+const char* PlyFormatName(PlyFormat format) {
+    switch (format) {
+        case PlyFormat::kAscii: return "ascii";
+        case PlyFormat::kBinaryLittleEndian: return "binary_little_endian";
+        case PlyFormat::kBinaryBigEndian: return "binary_big_endian";
+    }
+    return "?";
+}
+
+PointCloud ParsePly(std::string_view data, std::string_view file, const PlyReadOptions& options, PlyHeaderInfo* info) {
+    const Header h = ParseHeader(data, file, options);
+    const Element* vertex = nullptr;
+    for (const auto& e : h.elements)
+        if (e.name == "vertex") vertex = &e;
+    if (!vertex) Fail(file, "no 'vertex' element in the header");
+    for (const char* axis : {"x", "y", "z"})
+        if (vertex->Find(axis) < 0)
+            Fail(file, "header line " + std::to_string(vertex->header_line) + ": element 'vertex' has no property '" + axis + "'");
+
+    PointCloud cloud;
+    BodyReader body(data, file, h);
+    for (const auto& e : h.elements) {
+        std::vector<Sink> sinks(e.props.size());
+        FaceSink faces;
+        if (&e == vertex) {
+            const std::uint64_t n = body.MaxRecords(e);
+            auto idx = [&](const char* name) { return e.Find(name); };
+            auto bind_vec3 = [&](std::vector<Vec3f>& dst, const char* a, const char* b, const char* c) {
+                const int ia = idx(a), ib = idx(b), ic = idx(c);
+                if (ia < 0 || ib < 0 || ic < 0) return false;
+                dst.resize(n);
+                float* base = dst.data()->data();
+                sinks[ia] = {base + 0, nullptr, 3, 1.0f};
+                sinks[ib] = {base + 1, nullptr, 3, 1.0f};
+                sinks[ic] = {base + 2, nullptr, 3, 1.0f};
+                return true;
+            };
+            bind_vec3(cloud.positions, "x", "y", "z");
+            bind_vec3(cloud.normals, "nx", "ny", "nz");
+            const int ir = idx("red"), ig = idx("green"), ib = idx("blue"), ia = idx("alpha");
+            if (ir >= 0 && ig >= 0 && ib >= 0) {
+                const ScalarType ct = e.props[ir].type;
+                const bool ok = (ct == ScalarType::kUInt8 || IsFloatType(ct)) && e.props[ig].type == ct &&
+                                e.props[ib].type == ct && (ia < 0 || e.props[ia].type == ct);
+                if (ok) {
+                    cloud.color_type = ct == ScalarType::kUInt8 ? ScalarType::kUInt8 : ScalarType::kFloat32;
+                    cloud.color_has_alpha = ia >= 0;
+                    cloud.colors.assign(n, {0.f, 0.f, 0.f, 1.f});
+                    const float div = ct == ScalarType::kUInt8 ? 255.0f : 1.0f;
+                    float* base = cloud.colors.data()->data();
+                    sinks[ir] = {base + 0, nullptr, 4, div};
+                    sinks[ig] = {base + 1, nullptr, 4, div};
+                    sinks[ib] = {base + 2, nullptr, 4, div};
+                    if (ia >= 0) sinks[ia] = {base + 3, nullptr, 4, div};
+                }
+            }
+            if (const int irad = idx("radius"); irad >= 0) {
+                cloud.radii.resize(n);
+                sinks[irad] = {cloud.radii.data(), nullptr, 1, 1.0f};
+            }
+            std::size_t extra_count = 0;
+            for (std::size_t k = 0; k < e.props.size(); ++k)
+                if (!sinks[k].active() && !e.props[k].is_list) ++extra_count;
+            cloud.extras.reserve(extra_count);  // stable addresses for the sinks below
+            for (std::size_t k = 0; k < e.props.size(); ++k) {
+                if (sinks[k].active() || e.props[k].is_list) continue;
+                cloud.extras.push_back({e.props[k].name, e.props[k].type, std::vector<double>(n)});
+                sinks[k] = {nullptr, cloud.extras.back().values.data(), 1, 1.0f};
+            }
+        } else if (e.name == "face") {
+            for (std::size_t k = 0; k < e.props.size(); ++k)
+                if (e.props[k].is_list && (e.props[k].name == "vertex_indices" || e.props[k].name == "vertex_index"))
+                    faces.list_index = static_cast<int>(k);
+            if (faces.list_index >= 0) {
+                if (IsFloatType(e.props[faces.list_index].type))
+                    Fail(file, "header line " + std::to_string(e.header_line) + ": face list '" + e.props[faces.list_index].name + "' has a floating-point item type");
+                cloud.triangles.reserve(body.MaxRecords(e));
+                faces.triangles = &cloud.triangles;
+            }
+        }
+        body.Read(e, sinks, faces.triangles ? &faces : nullptr);
+        if (&e == vertex) {
+            // Arrays were sized by MaxRecords (== count when the data is complete).
+        }
+        if (faces.triangles && info) info->face_count = faces.polygons;
+    }
+    body.Finish();
+
+    // Validation of values (after all elements: a face element may precede the vertices).
+    for (std::size_t i = 0; i < cloud.positions.size(); ++i) {
+        const Vec3f& p = cloud.positions[i];
+        if (!p.allFinite()) {
+            const int axis = !std::isfinite(p.x()) ? 0 : !std::isfinite(p.y()) ? 1 : 2;
+            std::ostringstream os;
+            os << "vertex " << i << ", field '" << "xyz"[axis] << "': coordinate is not finite (" << p[axis] << ")";
+            Fail(file, os.str());
+        }
+    }
+    for (std::size_t f = 0; f < cloud.triangles.size(); ++f)
+        for (std::uint32_t v : cloud.triangles[f])
+            if (v >= cloud.positions.size())
+                Fail(file, "face triangle " + std::to_string(f) + ": vertex index " +
+                               (v == UINT32_MAX ? std::string("out of range") : std::to_string(v)) + " is not below the vertex count " +
+                               std::to_string(cloud.positions.size()));
+    if (info) {
+        info->format = h.format;
+        info->comments = h.comments;
+        info->elements.clear();
+        for (const auto& e : h.elements) {
+            PlyHeaderInfo::Element ie{e.name, e.count, {}};
+            for (const auto& p : e.props)
+                ie.properties.push_back(p.is_list ? std::string("list ") + ScalarTypeName(p.count_type) + " " + ScalarTypeName(p.type) + " " + p.name
+                                                  : std::string(ScalarTypeName(p.type)) + " " + p.name);
+            info->elements.push_back(std::move(ie));
+        }
+    }
+    cloud.CheckConsistent();
+    return cloud;
+}
+
+// ---- Writing ---------------------------------------------------------------------------------------
+
+namespace {
+
+template <typename T>
+void AppendRaw(std::string& out, T v) {
+    char b[sizeof(T)];
+    std::memcpy(b, &v, sizeof(T));
+    out.append(b, sizeof(T));
+}
+
+void AppendBinary(std::string& out, ScalarType t, double v) {
+    switch (t) {
+        case ScalarType::kInt8: return AppendRaw<std::int8_t>(out, static_cast<std::int8_t>(v));
+        case ScalarType::kUInt8: return AppendRaw<std::uint8_t>(out, static_cast<std::uint8_t>(v));
+        case ScalarType::kInt16: return AppendRaw<std::int16_t>(out, static_cast<std::int16_t>(v));
+        case ScalarType::kUInt16: return AppendRaw<std::uint16_t>(out, static_cast<std::uint16_t>(v));
+        case ScalarType::kInt32: return AppendRaw<std::int32_t>(out, static_cast<std::int32_t>(v));
+        case ScalarType::kUInt32: return AppendRaw<std::uint32_t>(out, static_cast<std::uint32_t>(v));
+        case ScalarType::kFloat32: return AppendRaw<float>(out, static_cast<float>(v));
+        case ScalarType::kFloat64: return AppendRaw<double>(out, v);
+    }
+}
+
+void AppendAscii(std::string& out, ScalarType t, double v) {
+    char buf[64];
+    std::to_chars_result r;
+    if (t == ScalarType::kFloat32) r = std::to_chars(buf, buf + sizeof buf, static_cast<float>(v));
+    else if (t == ScalarType::kFloat64) r = std::to_chars(buf, buf + sizeof buf, v);
+    else r = std::to_chars(buf, buf + sizeof buf, static_cast<std::int64_t>(v));
+    out.append(buf, r.ptr);
+}
+
+void AppendFloatAscii(std::string& out, float v) {
+    char buf[32];
+    auto r = std::to_chars(buf, buf + sizeof buf, v);
+    out.append(buf, r.ptr);
+}
+
+double ColorOut(const PointCloud& c, float v) {
+    if (c.color_type == ScalarType::kUInt8) return std::lround(std::clamp(v, 0.0f, 1.0f) * 255.0f);
+    return v;
+}
+
+}  // namespace
+
+std::string FormatPly(const PointCloud& cloud, const PlyWriteOptions& options) {
+    cloud.CheckConsistent();
+    const bool ascii = options.format == PlyFormat::kAscii;
+    SURFEL_CHECK(options.format != PlyFormat::kBinaryBigEndian || std::endian::native == std::endian::big,
+                 "big-endian output is not supported on this machine");
+    const ScalarType ct = cloud.color_type == ScalarType::kUInt8 ? ScalarType::kUInt8 : ScalarType::kFloat32;
+    std::string out = "ply\nformat ";
+    out += PlyFormatName(options.format);
+    out += " 1.0\ncomment written by surfel\n";
+    for (const auto& c : options.comments) out += "comment " + c + "\n";
+    out += "element vertex " + std::to_string(cloud.size()) + "\n";
+    out += "property float x\nproperty float y\nproperty float z\n";
+    if (cloud.has_normals()) out += "property float nx\nproperty float ny\nproperty float nz\n";
+    if (cloud.has_colors()) {
+        for (const char* ch : {"red", "green", "blue", "alpha"}) {
+            if (std::string_view(ch) == "alpha" && !cloud.color_has_alpha) break;
+            out += std::string("property ") + ScalarTypeName(ct) + " " + ch + "\n";
+        }
+    }
+    if (cloud.has_radii()) out += "property float radius\n";
+    for (const auto& e : cloud.extras) out += std::string("property ") + ScalarTypeName(e.type) + " " + e.name + "\n";
+    const bool faces = options.write_faces && !cloud.triangles.empty();
+    if (faces) out += "element face " + std::to_string(cloud.triangles.size()) + "\nproperty list uchar int vertex_indices\n";
+    out += "end_header\n";
+
+    const int channels = cloud.color_has_alpha ? 4 : 3;
+    if (!ascii) {
+        std::size_t rec = 12 + (cloud.has_normals() ? 12 : 0) + (cloud.has_colors() ? channels * ScalarSize(ct) : 0) +
+                          (cloud.has_radii() ? 4 : 0);
+        for (const auto& e : cloud.extras) rec += ScalarSize(e.type);
+        out.reserve(out.size() + rec * cloud.size() + (faces ? 13 * cloud.triangles.size() : 0));
+    }
+    for (std::size_t i = 0; i < cloud.size(); ++i) {
+        if (ascii) {
+            const auto& p = cloud.positions[i];
+            AppendFloatAscii(out, p.x()); out += ' ';
+            AppendFloatAscii(out, p.y()); out += ' ';
+            AppendFloatAscii(out, p.z());
+            if (cloud.has_normals())
+                for (int k = 0; k < 3; ++k) { out += ' '; AppendFloatAscii(out, cloud.normals[i][k]); }
+            if (cloud.has_colors())
+                for (int k = 0; k < channels; ++k) { out += ' '; AppendAscii(out, ct, ColorOut(cloud, cloud.colors[i][k])); }
+            if (cloud.has_radii()) { out += ' '; AppendFloatAscii(out, cloud.radii[i]); }
+            for (const auto& e : cloud.extras) { out += ' '; AppendAscii(out, e.type, e.values[i]); }
+            out += '\n';
+        } else {
+            out.append(reinterpret_cast<const char*>(cloud.positions[i].data()), 12);
+            if (cloud.has_normals()) out.append(reinterpret_cast<const char*>(cloud.normals[i].data()), 12);
+            if (cloud.has_colors())
+                for (int k = 0; k < channels; ++k) AppendBinary(out, ct, ColorOut(cloud, cloud.colors[i][k]));
+            if (cloud.has_radii()) AppendRaw<float>(out, cloud.radii[i]);
+            for (const auto& e : cloud.extras) AppendBinary(out, e.type, e.values[i]);
+        }
+    }
+    if (faces) {
+        for (const auto& t : cloud.triangles) {
+            if (ascii) {
+                out += "3 " + std::to_string(t[0]) + " " + std::to_string(t[1]) + " " + std::to_string(t[2]) + "\n";
+            } else {
+                AppendRaw<std::uint8_t>(out, 3);
+                for (auto v : t) AppendRaw<std::int32_t>(out, static_cast<std::int32_t>(v));
+            }
+        }
+    }
+    return out;
+}
+
+// ---- Files ------------------------------------------------------------------------------------------
+
+std::string ReadFileBytes(const std::string& path) {
+    std::error_code ec;
+    if (std::filesystem::is_directory(path, ec)) throw Error(ErrorCode::kInvalidArgument, path + ": is a directory, not a file");
+    std::ifstream in(path, std::ios::binary);
+    if (!in) throw Error(ErrorCode::kNotFound, path + ": cannot open file (" + std::strerror(errno) + ")");
+    in.seekg(0, std::ios::end);
+    const auto size = in.tellg();
+    in.seekg(0, std::ios::beg);
+    std::string bytes;
+    if (size > 0) {
+        bytes.resize(static_cast<std::size_t>(size));
+        in.read(bytes.data(), size);
+        if (in.gcount() != size) throw Error(ErrorCode::kInternal, path + ": short read");
+    } else {  // pipes and special files report no size
+        std::ostringstream os;
+        os << in.rdbuf();
+        bytes = os.str();
+    }
+    return bytes;
+}
+
+void WriteFileBytes(const std::string& path, std::string_view bytes) {
+    const std::string tmp = path + ".tmp-surfel";
+    {
+        std::ofstream out(tmp, std::ios::binary | std::ios::trunc);
+        if (!out) throw Error(ErrorCode::kNotFound, path + ": cannot create file (" + std::strerror(errno) + ")");
+        out.write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
+        out.flush();
+        if (!out) throw Error(ErrorCode::kInternal, path + ": write failed (" + std::strerror(errno) + ")");
+    }
+    std::error_code ec;
+    std::filesystem::rename(tmp, path, ec);
+    if (ec) {
+        std::filesystem::remove(tmp, ec);
+        throw Error(ErrorCode::kNotFound, path + ": cannot create file (" + ec.message() + ")");
+    }
+}
+
+PointCloud ReadPly(const std::string& path, const PlyReadOptions& options, PlyHeaderInfo* info) {
+    return ParsePly(ReadFileBytes(path), path, options, info);
+}
+
+void WritePly(const PointCloud& cloud, const std::string& path, const PlyWriteOptions& options) {
+    WriteFileBytes(path, FormatPly(cloud, options));
+}
+
+// ---- XYZ --------------------------------------------------------------------------------------------
+
+PointCloud ParseXyz(std::string_view data, std::string_view file, std::uint64_t max_points) {
+    PointCloud cloud;
+    std::size_t pos = 0;
+    int line_no = 0;
+    int columns = 0;
+    while (pos < data.size()) {
+        std::size_t end = data.find('\n', pos);
+        if (end == std::string_view::npos) end = data.size();
+        std::string_view line = data.substr(pos, end - pos);
+        pos = end + 1;
+        ++line_no;
+        if (auto hash = line.find('#'); hash != std::string_view::npos) line = line.substr(0, hash);
+        auto tok = Tokenize(line);
+        if (tok.empty()) continue;
+        const std::string where = "line " + std::to_string(line_no) + ": ";
+        if (tok.size() != 3 && tok.size() != 6)
+            Fail(file, where + "expected 3 values (x y z) or 6 (x y z nx ny nz), found " + std::to_string(tok.size()));
+        if (columns == 0) columns = static_cast<int>(tok.size());
+        if (static_cast<int>(tok.size()) != columns)
+            Fail(file, where + "has " + std::to_string(tok.size()) + " values but earlier lines have " + std::to_string(columns));
+        if (cloud.size() >= max_points)
+            throw Error(ErrorCode::kResourceExhausted, std::string(file) + ": " + where + "more than " + std::to_string(max_points) + " points");
+        float v[6];
+        static const char* kNames[] = {"x", "y", "z", "nx", "ny", "nz"};
+        for (std::size_t k = 0; k < tok.size(); ++k) {
+            auto [p, ec] = std::from_chars(tok[k].data(), tok[k].data() + tok[k].size(), v[k]);
+            if (ec != std::errc() || p != tok[k].data() + tok[k].size())
+                Fail(file, where + "field '" + kNames[k] + "': " + Quote(tok[k]) + " is not a number");
+            if (!std::isfinite(v[k])) Fail(file, where + "field '" + kNames[k] + "': value is not finite");
+        }
+        cloud.positions.emplace_back(v[0], v[1], v[2]);
+        if (columns == 6) cloud.normals.emplace_back(v[3], v[4], v[5]);
+    }
+    return cloud;
+}
+
+std::string FormatXyz(const PointCloud& cloud) {
+    std::string out;
+    out.reserve(cloud.size() * 40);
+    for (std::size_t i = 0; i < cloud.size(); ++i) {
+        for (int k = 0; k < 3; ++k) {
+            if (k) out += ' ';
+            AppendFloatAscii(out, cloud.positions[i][k]);
+        }
+        if (cloud.has_normals())
+            for (int k = 0; k < 3; ++k) { out += ' '; AppendFloatAscii(out, cloud.normals[i][k]); }
+        out += '\n';
+    }
+    return out;
+}
+
+// ---- Dispatch ---------------------------------------------------------------------------------------
+
+CloudFileFormat FormatFromPath(const std::string& path) {
+    std::string ext = std::filesystem::path(path).extension().string();
+    std::transform(ext.begin(), ext.end(), ext.begin(), [](unsigned char c) { return std::tolower(c); });
+    if (ext == ".ply") return CloudFileFormat::kPly;
+    if (ext == ".xyz" || ext == ".txt" || ext == ".pts") return CloudFileFormat::kXyz;
+    throw Error(ErrorCode::kInvalidArgument,
+                path + ": unknown point-cloud file extension '" + ext + "' (expected .ply, .xyz, .txt or .pts)");
+}
+
+PointCloud ParsePointCloud(std::string_view data, std::string_view name, const PlyReadOptions& options) {
+    if (data.starts_with("ply\n") || data.starts_with("ply\r\n")) return ParsePly(data, name, options);
+    return ParseXyz(data, name, options.max_points);
+}
+
+PointCloud ReadPointCloud(const std::string& path, const PlyReadOptions& options, PlyHeaderInfo* info) {
+    const std::string bytes = ReadFileBytes(path);
+    if (bytes.starts_with("ply\n") || bytes.starts_with("ply\r\n")) return ParsePly(bytes, path, options, info);
+    return ParseXyz(bytes, path, options.max_points);
+}
+
+void WritePointCloud(const PointCloud& cloud, const std::string& path, bool ascii) {
+    if (FormatFromPath(path) == CloudFileFormat::kXyz) return WriteFileBytes(path, FormatXyz(cloud));
+    PlyWriteOptions opt;
+    opt.format = ascii ? PlyFormat::kAscii : PlyFormat::kBinaryLittleEndian;
+    WritePly(cloud, path, opt);
+}
+
+}  // namespace surfel

@@ -1,0 +1,141 @@
+#include "surfel/spatial/kd_tree.h"
+
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+
+#include <algorithm>
+#include <flann/algorithms/kdtree_single_index.h>
+#include <flann/flann.hpp>
+#include <limits>
+
+#include "surfel/base/error.h"
+
+namespace surfel {
+namespace {
+
+using FlannTree = flann::KDTreeSingleIndex<flann::L2_Simple<float>>;
+
+// k nearest, kept sorted by insertion into a caller-owned buffer (no allocation per query).
+class KnnCollector : public flann::ResultSet<float> {
+public:
+    KnnCollector(std::vector<Neighbor>* out, std::size_t k) : out_(out), k_(k) {
+        out_->clear();
+        out_->reserve(k);
+    }
+    bool full() const override { return out_->size() == k_; }
+    float worstDist() const override {
+        return full() ? out_->back().dist2 : std::numeric_limits<float>::max();
+    }
+    void addPoint(float dist, std::size_t index) override {
+        if (full()) {
+            if (dist >= out_->back().dist2) return;
+            out_->pop_back();
+        }
+        Neighbor n{static_cast<std::uint32_t>(index), dist};
+        auto it = std::upper_bound(out_->begin(), out_->end(), n, [](const Neighbor& a, const Neighbor& b) {
+            return a.dist2 < b.dist2 || (a.dist2 == b.dist2 && a.index < b.index);
+        });
+        out_->insert(it, n);
+    }
+
+private:
+    std::vector<Neighbor>* out_;
+    std::size_t k_;
+};
+
+// Everything within a radius (FLANN compares squared distances for L2_Simple).
+class RadiusCollector : public flann::ResultSet<float> {
+public:
+    RadiusCollector(std::vector<Neighbor>* out, float radius2) : out_(out), r2_(radius2) { out_->clear(); }
+    bool full() const override { return true; }
+    float worstDist() const override { return r2_; }
+    void addPoint(float dist, std::size_t index) override {
+        if (dist <= r2_) out_->push_back({static_cast<std::uint32_t>(index), dist});
+    }
+
+private:
+    std::vector<Neighbor>* out_;
+    float r2_;
+};
+
+}  // namespace
+
+struct KdTree::Impl {
+    std::vector<Vec3f> points;
+    std::unique_ptr<FlannTree> tree;
+    flann::SearchParams params{flann::FLANN_CHECKS_UNLIMITED, 0.0f, false};
+};
+
+KdTree::KdTree(std::span<const Vec3f> points) : impl_(std::make_unique<Impl>()) {
+    impl_->points.assign(points.begin(), points.end());
+    if (impl_->points.size() >= std::numeric_limits<std::uint32_t>::max())
+        throw Error(ErrorCode::kResourceExhausted, "too many points for the kd-tree: " + std::to_string(points.size()));
+    if (!impl_->points.empty()) {
+        flann::Matrix<float> data(impl_->points.data()->data(), impl_->points.size(), 3);
+        impl_->tree = std::make_unique<FlannTree>(data, flann::KDTreeSingleIndexParams(10, true));
+        impl_->tree->buildIndex();
+    }
+}
+
+KdTree::~KdTree() = default;
+
+std::size_t KdTree::size() const { return impl_->points.size(); }
+std::span<const Vec3f> KdTree::points() const { return impl_->points; }
+
+void KdTree::Knn(const Vec3f& q, int k, std::vector<Neighbor>* out) const {
+    SURFEL_CHECK(k > 0, "k = " << k);
+    KnnCollector c(out, static_cast<std::size_t>(k));
+    if (impl_->tree) impl_->tree->findNeighbors(c, q.data(), impl_->params);
+}
+
+void KdTree::Radius(const Vec3f& q, float radius, std::vector<Neighbor>* out) const {
+    RadiusCollector c(out, radius * radius);
+    if (impl_->tree) impl_->tree->findNeighbors(c, q.data(), impl_->params);
+}
+
+Neighbor KdTree::Nearest(const Vec3f& q) const {
+    std::vector<Neighbor> out;
+    Knn(q, 1, &out);
+    return out.empty() ? Neighbor{UINT32_MAX, std::numeric_limits<float>::infinity()} : out[0];
+}
+
+namespace {
+KnnTable RunBatch(const KdTree& tree, std::size_t n, int k, bool exclude_self, const Vec3f* queries,
+                  const ProgressFn& progress) {
+    SURFEL_CHECK(k > 0, "k = " << k);
+    KnnTable table;
+    table.k = k;
+    table.indices.assign(n * k, UINT32_MAX);
+    table.dist2.assign(n * k, std::numeric_limits<float>::infinity());
+    ProgressTracker tracker(progress, static_cast<double>(n), "neighbour search");
+    const int kq = exclude_self ? k + 1 : k;
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 1024), [&](const tbb::blocked_range<std::size_t>& r) {
+        std::vector<Neighbor> buf;
+        for (std::size_t i = r.begin(); i != r.end(); ++i) {
+            tree.Knn(queries[i], kq, &buf);
+            if (exclude_self) {
+                auto self = std::find_if(buf.begin(), buf.end(), [i](const Neighbor& nb) { return nb.index == i; });
+                if (self != buf.end()) buf.erase(self);
+                else if (static_cast<int>(buf.size()) > k) buf.pop_back();
+            }
+            const std::size_t m = std::min<std::size_t>(buf.size(), k);
+            for (std::size_t j = 0; j < m; ++j) {
+                table.indices[i * k + j] = buf[j].index;
+                table.dist2[i * k + j] = buf[j].dist2;
+            }
+        }
+        tracker.Advance(static_cast<double>(r.size()));
+    });
+    return table;
+}
+}  // namespace
+
+KnnTable KdTree::KnnAll(int k, const ProgressFn& progress) const {
+    return RunBatch(*this, size(), k, true, impl_->points.data(), progress);
+}
+
+KnnTable KdTree::KnnBatch(std::span<const Vec3f> queries, int k, const ProgressFn& progress) const {
+    return RunBatch(*this, queries.size(), k, false, queries.data(), progress);
+}
+
+}  // namespace surfel

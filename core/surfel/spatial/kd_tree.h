@@ -1,0 +1,67 @@
+#pragma once
+/// \file
+/// Exact nearest-neighbour search over a point set (a 3-d kd-tree; FLANN inside).
+
+#include <cstdint>
+#include <memory>
+#include <span>
+#include <vector>
+
+#include "surfel/base/point_cloud.h"
+#include "surfel/base/progress.h"
+
+namespace surfel {
+
+/// One neighbour: the point's index and its squared distance to the query.
+struct Neighbor {
+    std::uint32_t index;
+    float dist2;
+};
+
+/// k nearest neighbours of many queries, stored flat: row i holds the k neighbours of query i,
+/// nearest first. Rows of queries with fewer than k candidates are padded with index UINT32_MAX.
+struct KnnTable {
+    int k = 0;
+    std::vector<std::uint32_t> indices;  ///< size() * k
+    std::vector<float> dist2;            ///< size() * k, squared distances
+    std::size_t size() const { return k ? indices.size() / k : 0; }
+    std::span<const std::uint32_t> Row(std::size_t i) const { return {indices.data() + i * k, static_cast<std::size_t>(k)}; }
+    std::span<const float> Dist2(std::size_t i) const { return {dist2.data() + i * k, static_cast<std::size_t>(k)}; }
+};
+
+/// An exact kd-tree over a copy of the positions. Construction is O(n log n); every query is
+/// const and safe to run from many threads at once. Results are exact (checked against brute
+/// force in tests) and deterministic.
+class KdTree {
+public:
+    explicit KdTree(std::span<const Vec3f> points);
+    ~KdTree();
+    KdTree(const KdTree&) = delete;
+    KdTree& operator=(const KdTree&) = delete;
+
+    std::size_t size() const;
+    /// The indexed points (a copy of the constructor's input).
+    std::span<const Vec3f> points() const;
+
+    /// The k nearest points of q, nearest first, into `out` (cleared first; fewer if size() < k).
+    void Knn(const Vec3f& q, int k, std::vector<Neighbor>* out) const;
+
+    /// All points within distance `radius` of q (inclusive), in no particular order, into `out`
+    /// (cleared first).
+    void Radius(const Vec3f& q, float radius, std::vector<Neighbor>* out) const;
+
+    /// The single nearest point of q; UINT32_MAX for an empty tree.
+    Neighbor Nearest(const Vec3f& q) const;
+
+    /// k nearest neighbours of every indexed point, excluding the point itself; parallel.
+    KnnTable KnnAll(int k, const ProgressFn& progress = {}) const;
+
+    /// k nearest neighbours of each query; parallel.
+    KnnTable KnnBatch(std::span<const Vec3f> queries, int k, const ProgressFn& progress = {}) const;
+
+private:
+    struct Impl;
+    std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace surfel

@@ -1,0 +1,245 @@
+#include "surfel/surface/aa_surface.h"
+
+#include <Eigen/Eigenvalues>
+#include <cmath>
+#include <vector>
+
+#include "surfel/base/error.h"
+#include "surfel/spatial/kd_tree.h"
+#include "surfel/spatial/uniform_grid.h"
+#include "surfel/surface/local_analysis.h"
+
+namespace surfel {
+
+// Support plane and polynomial at one location (steps 1 and 2 of section 4).
+struct AaSurface::Fit {
+    LocalFrame frame;                     // origin r, normal n of the support plane
+    PolyCoeffs g;                         // a_i(x, y) over the plane
+    Vec3d normal_ref = Vec3d::Zero();     // weighted average of the cloud's normals (if any)
+    std::array<float, 4> color{0, 0, 0, 1};
+    bool valid = false;
+};
+
+struct AaSurface::Impl {
+    const PointCloud& cloud;
+    AaOptions opt;
+    std::vector<float> ball_radius;
+    std::unique_ptr<UniformGrid> grid;
+    std::vector<Fit> centers;
+    std::unique_ptr<std::atomic<std::uint8_t>[]> center_state;  // 0 empty, 1 being computed, 2 ready
+    Impl(const PointCloud& c, const AaOptions& o) : cloud(c), opt(o) {}
+};
+
+namespace {
+struct Sample {
+    Vec3d d;  // p_j - r
+    double w;
+    std::uint32_t index;
+};
+thread_local std::vector<Sample> tls_samples;
+
+// Real roots of A t^2 + B t + C = 0 (numerically stable); returns the count.
+int SolveQuadratic(double A, double B, double C, double* r0, double* r1) {
+    const double scale = std::max({std::abs(A), std::abs(B), std::abs(C)});
+    if (scale == 0) return 0;
+    if (std::abs(A) <= 1e-12 * scale) {
+        if (std::abs(B) <= 1e-300) return 0;
+        *r0 = -C / B;
+        return 1;
+    }
+    const double disc = B * B - 4 * A * C;
+    if (disc < 0) return 0;
+    const double s = std::sqrt(disc);
+    const double q = -0.5 * (B + (B >= 0 ? s : -s));
+    *r0 = q / A;
+    *r1 = q != 0 ? C / q : *r0;
+    if (*r0 > *r1) std::swap(*r0, *r1);
+    return 2;
+}
+
+// Ray o + t d against the graph z = g(x, y) of a frame: the quadratic in t.
+int IntersectPoly(const LocalFrame& f, const PolyCoeffs& g, const Vec3d& o, const Vec3d& d, double* t0, double* t1) {
+    const Vec3d ol = f.ToLocal(o), dl = f.DirToLocal(d);
+    const double ox = ol.x(), oy = ol.y(), oz = ol.z(), dx = dl.x(), dy = dl.y(), dz = dl.z();
+    const double* c = g.c;
+    const double A = c[3] * dx * dx + c[4] * dx * dy + c[5] * dy * dy;
+    const double B = c[1] * dx + c[2] * dy + 2 * c[3] * ox * dx + c[4] * (ox * dy + oy * dx) + 2 * c[5] * oy * dy - dz;
+    const double C = c[0] + c[1] * ox + c[2] * oy + c[3] * ox * ox + c[4] * ox * oy + c[5] * oy * oy - oz;
+    return SolveQuadratic(A, B, C, t0, t1);
+}
+}  // namespace
+
+AaSurface::AaSurface(const PointCloud& cloud, const AaOptions& options)
+    : impl_(std::make_unique<Impl>(cloud, options)) {
+    AaOptions& o = impl_->opt;
+    if (cloud.size() < 3) throw Error(ErrorCode::kInvalidArgument, "the surface needs at least 3 points, got " + std::to_string(cloud.size()));
+    if (o.degree < 0 || o.degree > 2) throw Error(ErrorCode::kInvalidArgument, "polynomial degree must be 0, 1 or 2, got " + std::to_string(o.degree));
+    if (o.h < 0 || !std::isfinite(o.h)) throw Error(ErrorCode::kInvalidArgument, "h must be > 0 (or 0 for the default), got " + std::to_string(o.h));
+    if (o.precision < 0 || !std::isfinite(o.precision)) throw Error(ErrorCode::kInvalidArgument, "precision must be > 0 (or 0 for 1e-3 h)");
+    if (o.max_iterations < 1) throw Error(ErrorCode::kInvalidArgument, "max_iterations must be >= 1");
+    if (!(o.cutoff >= 1.0f)) throw Error(ErrorCode::kInvalidArgument, "cutoff must be >= 1 (in units of h)");
+    KdTree tree(cloud.positions);
+    const SamplingDensity density = ComputeSamplingDensity(tree, o.ball_k);
+    impl_->ball_radius = density.radius;
+    if (o.h == 0) o.h = DefaultScale(density);
+    if (!(o.h > 0)) throw Error(ErrorCode::kInvalidArgument, "cannot derive h from the cloud (all points coincide); pass h");
+    if (o.precision == 0) o.precision = 1e-3f * o.h;
+    impl_->grid = std::make_unique<UniformGrid>(cloud.positions, o.cutoff * o.h);
+    impl_->centers.resize(cloud.size());
+    impl_->center_state.reset(new std::atomic<std::uint8_t>[cloud.size()]);
+    for (std::size_t i = 0; i < cloud.size(); ++i) impl_->center_state[i].store(0, std::memory_order_relaxed);
+}
+
+AaSurface::~AaSurface() = default;
+
+float AaSurface::h() const { return impl_->opt.h; }
+float AaSurface::precision() const { return impl_->opt.precision; }
+const AaOptions& AaSurface::options() const { return impl_->opt; }
+const PointCloud& AaSurface::cloud() const { return impl_->cloud; }
+float AaSurface::BallRadius(std::uint32_t i) const { return impl_->ball_radius[i]; }
+
+bool AaSurface::FitAt(const Vec3d& r, Fit* fit) const {
+    const AaOptions& o = impl_->opt;
+    const PointCloud& cloud = impl_->cloud;
+    const double inv_h2 = 1.0 / (double(o.h) * o.h);
+    auto& s = tls_samples;
+    s.clear();
+    // Step 1, support plane: B = sum theta_j (p_j - r)(p_j - r)^T (eq. 8, 9).
+    Eigen::Matrix3d B = Eigen::Matrix3d::Zero();
+    double wsum = 0;
+    impl_->grid->ForEachWithin(r.cast<float>(), o.cutoff * o.h, [&](std::uint32_t idx, const Vec3f& p, float) {
+        const Vec3d d = p.cast<double>() - r;
+        const double w = std::exp(-d.squaredNorm() * inv_h2);
+        s.push_back({d, w, idx});
+        B.noalias() += w * d * d.transpose();
+        wsum += w;
+    });
+    fit->valid = false;
+    if (s.size() < 3 || !(wsum > 1e-12)) return false;
+    Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es;
+    es.computeDirect(B);
+    const Vec3d lambda = es.eigenvalues();
+    if (!(lambda[0] < o.normal_ratio * lambda[1])) return false;  // normal not well defined
+    fit->frame = LocalFrame::FromNormal(r, es.eigenvectors().col(0));
+    // Step 2, polynomial: minimise sum (a_i(x_j, y_j) - f_j)^2 theta_j (eq. 10).
+    PolyFit pf(o.degree, o.h);
+    Vec3d nref = Vec3d::Zero();
+    Eigen::Vector4d col = Eigen::Vector4d::Zero();
+    const bool normals = cloud.has_normals(), colors = cloud.has_colors();
+    for (const Sample& smp : s) {
+        const Vec3d l = fit->frame.DirToLocal(smp.d);
+        pf.Add(l.x(), l.y(), l.z(), smp.w);
+        if (normals) nref += smp.w * cloud.normals[smp.index].cast<double>();
+        if (colors) {
+            const auto& c = cloud.colors[smp.index];
+            col += smp.w * Eigen::Vector4d(c[0], c[1], c[2], c[3]);
+        }
+    }
+    if (!pf.Solve(&fit->g)) return false;
+    fit->normal_ref = nref;
+    if (colors) {
+        col /= wsum;
+        fit->color = {float(col[0]), float(col[1]), float(col[2]), float(col[3])};
+    }
+    fit->valid = true;
+    return true;
+}
+
+AaEvaluation AaSurface::Evaluate(const Vec3d& x) const {
+    const AaOptions& o = impl_->opt;
+    const double inv_h2 = 1.0 / (double(o.h) * o.h);
+    AaEvaluation ev;
+    Eigen::Matrix3d B = Eigen::Matrix3d::Zero();
+    Vec3d sum = Vec3d::Zero(), nref = Vec3d::Zero();
+    double wsum = 0;
+    std::size_t count = 0;
+    const PointCloud& cloud = impl_->cloud;
+    impl_->grid->ForEachWithin(x.cast<float>(), o.cutoff * o.h, [&](std::uint32_t idx, const Vec3f& p, float) {
+        const Vec3d d = p.cast<double>() - x;
+        const double w = std::exp(-d.squaredNorm() * inv_h2);
+        B.noalias() += w * d * d.transpose();  // eq. 2-4: covariances in directions through x
+        sum += w * p.cast<double>();
+        wsum += w;
+        if (cloud.has_normals()) nref += w * cloud.normals[idx].cast<double>();
+        ++count;
+    });
+    if (count < 3 || !(wsum > 1e-12)) return ev;
+    Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es;
+    es.computeDirect(B);
+    ev.a = sum / wsum;
+    ev.n = es.eigenvectors().col(0).normalized();
+    if (nref.dot(ev.n) < 0) ev.n = -ev.n;
+    ev.f = ev.n.dot(ev.a - x);
+    ev.well_defined = es.eigenvalues()[0] < o.normal_ratio * es.eigenvalues()[1];
+    return ev;
+}
+
+const AaSurface::Fit* AaSurface::CenterFit(std::uint32_t ball, Fit* local, AaCounters* counters) const {
+    auto& state = impl_->center_state[ball];
+    if (state.load(std::memory_order_acquire) == 2) {
+        ++counters->cache_hits;
+        return &impl_->centers[ball];
+    }
+    ++counters->evaluations;
+    const Vec3d c = impl_->cloud.positions[ball].cast<double>();
+    std::uint8_t expected = 0;
+    if (state.compare_exchange_strong(expected, 1, std::memory_order_acq_rel)) {
+        FitAt(c, &impl_->centers[ball]);
+        state.store(2, std::memory_order_release);
+        return &impl_->centers[ball];
+    }
+    // Another thread is computing it: compute a private copy (same values) rather than wait.
+    FitAt(c, local);
+    return local;
+}
+
+std::optional<AaHit> AaSurface::IntersectInBall(std::uint32_t ball, const Vec3d& o, const Vec3d& d, double tmin,
+                                                double tmax, AaCounters* counters) const {
+    const AaOptions& opt = impl_->opt;
+    const Vec3d center = impl_->cloud.positions[ball].cast<double>();
+    const double rho = impl_->ball_radius[ball];
+    const double rho2 = rho * rho * (1.0 + 1e-9);
+    auto inside = [&](double t) { return t >= tmin && t <= tmax && (o + t * d - center).squaredNorm() <= rho2; };
+
+    // r_0: the ray against the ball centre's polynomial (section 5), cached per ball.
+    Fit local;
+    const Fit* cf = CenterFit(ball, &local, counters);
+    if (!cf->valid) return std::nullopt;
+    double r0, r1, t = 0;
+    int nroots = IntersectPoly(cf->frame, cf->g, o, d, &r0, &r1);
+    bool found = false;
+    if (nroots >= 1 && inside(r0)) { t = r0; found = true; }
+    else if (nroots == 2 && inside(r1)) { t = r1; found = true; }
+    if (!found) return std::nullopt;
+
+    Fit fit;
+    for (int it = 0; it < opt.max_iterations; ++it) {
+        ++counters->iterations;
+        ++counters->evaluations;
+        const Vec3d r = o + t * d;
+        if (!FitAt(r, &fit)) return std::nullopt;
+        nroots = IntersectPoly(fit.frame, fit.g, o, d, &r0, &r1);
+        if (nroots == 0) return std::nullopt;
+        double tn = r0;
+        if (nroots == 2 && std::abs(r1 - t) < std::abs(r0 - t)) tn = r1;
+        if (!inside(tn)) return std::nullopt;  // left the region of trust
+        if (std::abs(fit.g.c[0]) < opt.precision) {
+            AaHit hit;
+            hit.t = tn;
+            hit.position = o + tn * d;
+            const Vec3d l = fit.frame.ToLocal(hit.position);
+            Vec3d n = fit.frame.NormalAt(fit.g, l.x(), l.y());
+            const bool oriented = fit.normal_ref.squaredNorm() > 0;
+            if (oriented ? n.dot(fit.normal_ref) < 0 : n.dot(d) > 0) n = -n;
+            hit.normal = n;
+            hit.color = fit.color;
+            hit.iterations = it + 1;
+            ++counters->converged;
+            return hit;
+        }
+        t = tn;
+    }
+    return std::nullopt;
+}
+
+}  // namespace surfel

@@ -1,0 +1,95 @@
+#pragma once
+/// \file
+/// The point-set surface of Adamson & Alexa, "Approximating and Intersecting Surfaces from
+/// Points" (2003): the implicit function of section 3 and the ray-surface iteration of
+/// sections 4-5, evaluated with Gaussian weights theta(d) = exp(-d^2/h^2).
+
+#include <array>
+#include <atomic>
+#include <cstdint>
+#include <memory>
+#include <optional>
+
+#include "surfel/base/point_cloud.h"
+#include "surfel/surface/poly_fit.h"
+
+namespace surfel {
+
+struct AaOptions {
+    float h = 0.0f;             ///< Gaussian scale; 0 = DefaultScale (2 x median spacing).
+    int degree = 2;             ///< Local polynomial degree (0 = the paper's analysis, 1, 2).
+    float cutoff = 3.0f;        ///< Points farther than cutoff * h are ignored (weight < exp(-9)).
+    float precision = 0.0f;     ///< Accept when |c| < precision (absolute); 0 = 1e-3 * h (paper, section 6).
+    int max_iterations = 20;    ///< Iterations per ball before giving up.
+    float normal_ratio = 0.5f;  ///< Normal well-defined when lambda0 < normal_ratio * lambda1 (Definition 1).
+    int ball_k = 6;             ///< Ball radius rho_i encloses the ball_k nearest neighbours (section 5).
+};
+
+/// Section 3 at one location: a(x) (eq. 1), n(x) (Definition 1) and f(x) = n(x).(a(x) - x) (eq. 5).
+/// When the cloud has normals, n(x) is turned to agree with their weighted average, so f > 0
+/// inside and f < 0 outside of a closed, outward-oriented surface.
+struct AaEvaluation {
+    Vec3d a = Vec3d::Zero();
+    Vec3d n = Vec3d::Zero();
+    double f = 0.0;
+    bool well_defined = false;  ///< False where too few points are near or lambda0 ~ lambda1.
+};
+
+/// A converged ray-surface intersection.
+struct AaHit {
+    double t = 0.0;                 ///< Ray parameter (distance when the direction is unit).
+    Vec3d position = Vec3d::Zero();
+    Vec3d normal = Vec3d::Zero();   ///< Unit; from the cloud's normals if any, else facing the ray.
+    std::array<float, 4> color{0, 0, 0, 1};  ///< Weighted colour when the cloud has colours.
+    int iterations = 0;
+};
+
+/// Work counters, summed by the caller over threads.
+struct AaCounters {
+    std::uint64_t evaluations = 0;   ///< Support plane + polynomial fits computed.
+    std::uint64_t cache_hits = 0;    ///< Ball-centre polynomials reused.
+    std::uint64_t iterations = 0;    ///< Section-4 iterations run.
+    std::uint64_t converged = 0;     ///< Iterations that ended in a hit.
+    void Add(const AaCounters& o) {
+        evaluations += o.evaluations;
+        cache_hits += o.cache_hits;
+        iterations += o.iterations;
+        converged += o.converged;
+    }
+};
+
+/// The surface over a cloud (kept by reference: it must outlive this object). Thread-safe:
+/// every method is const; the per-ball centre polynomials are cached lazily without locks.
+class AaSurface {
+public:
+    explicit AaSurface(const PointCloud& cloud, const AaOptions& options = {});
+    ~AaSurface();
+
+    float h() const;
+    float precision() const;
+    const AaOptions& options() const;
+    const PointCloud& cloud() const;
+
+    /// Ball i of the bounding volume (section 5): centre p_i, radius rho_i.
+    float BallRadius(std::uint32_t i) const;
+
+    /// Evaluates a(x), n(x), f(x) (section 3).
+    AaEvaluation Evaluate(const Vec3d& x) const;
+
+    /// Section 4 inside ball `ball` (its region of trust): starts from the ball centre's cached
+    /// polynomial, then iterates support plane -> polynomial -> intersection until the constant
+    /// term |c| < precision. Returns the hit with the smallest t in [tmin, tmax] found this way,
+    /// or nullopt ("no surface here": no intersection in the ball, ill-defined normal, the
+    /// iterate left the ball, or no convergence). `dir` must be unit length.
+    std::optional<AaHit> IntersectInBall(std::uint32_t ball, const Vec3d& origin, const Vec3d& dir, double tmin,
+                                         double tmax, AaCounters* counters) const;
+
+private:
+    struct Fit;
+    bool FitAt(const Vec3d& r, Fit* fit) const;
+    const Fit* CenterFit(std::uint32_t ball, Fit* local, AaCounters* counters) const;
+    struct Impl;
+    std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace surfel

@@ -1,0 +1,253 @@
+#include "surfel/surface/local_analysis.h"
+
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+
+#include <Eigen/Eigenvalues>
+#include <algorithm>
+#include <cmath>
+#include <numbers>
+#include <numeric>
+#include <queue>
+
+#include "surfel/base/error.h"
+#include "surfel/surface/poly_fit.h"
+
+namespace surfel {
+
+SamplingDensity ComputeSamplingDensity(const KdTree& tree, int k, const ProgressFn& progress) {
+    SURFEL_CHECK(k > 0);
+    SamplingDensity d;
+    const std::size_t n = tree.size();
+    if (n < 2) return d;
+    const KnnTable knn = tree.KnnAll(std::min<int>(k, static_cast<int>(n) - 1), progress);
+    d.radius.resize(n);
+    d.density.resize(n);
+    d.spacing.resize(n);
+    for (std::size_t i = 0; i < n; ++i) {
+        const float r = std::sqrt(knn.Dist2(i)[knn.k - 1]);
+        d.radius[i] = r;
+        d.density[i] = r > 0 ? static_cast<float>(knn.k / (std::numbers::pi * r * r)) : std::numeric_limits<float>::infinity();
+        d.spacing[i] = r > 0 ? 1.0f / std::sqrt(d.density[i]) : 0.0f;
+    }
+    std::vector<float> s = d.spacing;
+    std::nth_element(s.begin(), s.begin() + s.size() / 2, s.end());
+    d.median_spacing = s[s.size() / 2];
+    return d;
+}
+
+float DefaultScale(const SamplingDensity& density) { return 2.0f * density.median_spacing; }
+
+float DefaultScale(const KdTree& tree) {
+    const float h = DefaultScale(ComputeSamplingDensity(tree));
+    if (!(h > 0.0f))
+        throw Error(ErrorCode::kInvalidArgument,
+                    "cannot derive a scale h from the cloud (fewer than 2 distinct points); pass h explicitly");
+    return h;
+}
+
+CovarianceFrame AnalyzeNeighborhood(std::span<const Vec3f> points, std::span<const std::uint32_t> indices,
+                                    std::span<const float> weights) {
+    CovarianceFrame f;
+    double wsum = 0;
+    Vec3d c = Vec3d::Zero();
+    for (std::size_t j = 0; j < indices.size(); ++j) {
+        if (indices[j] == UINT32_MAX) continue;
+        const double w = weights.empty() ? 1.0 : weights[j];
+        c += w * points[indices[j]].cast<double>();
+        wsum += w;
+    }
+    c /= std::max(wsum, 1e-300);
+    Eigen::Matrix3d C = Eigen::Matrix3d::Zero();
+    for (std::size_t j = 0; j < indices.size(); ++j) {
+        if (indices[j] == UINT32_MAX) continue;
+        const double w = weights.empty() ? 1.0 : weights[j];
+        const Vec3d d = points[indices[j]].cast<double>() - c;
+        C.noalias() += w * d * d.transpose();
+    }
+    Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es;
+    es.computeDirect(C);
+    f.centroid = c;
+    f.normal = es.eigenvectors().col(0).normalized();
+    f.eigenvalues = es.eigenvalues().cwiseMax(0.0);
+    return f;
+}
+
+NormalResult EstimateNormals(const KdTree& tree, const NormalOptions& opt, const ProgressFn& progress) {
+    if (opt.k < 3) throw Error(ErrorCode::kInvalidArgument, "normal estimation needs k >= 3, got " + std::to_string(opt.k));
+    const std::size_t n = tree.size();
+    NormalResult res;
+    if (n < 3) throw Error(ErrorCode::kInvalidArgument, "normal estimation needs at least 3 points, got " + std::to_string(n));
+    const int k = std::min<int>(opt.k, static_cast<int>(n) - 1);
+    const KnnTable knn = tree.KnnAll(k, progress ? ProgressFn([&](double f) { return progress(0.4 * f); }) : ProgressFn{});
+    res.normals.resize(n);
+    res.surface_variation.resize(n);
+    const auto pts = tree.points();
+    ProgressTracker tracker(progress ? ProgressFn([&](double f) { return progress(0.4 + 0.3 * f); }) : ProgressFn{},
+                            static_cast<double>(n), "normal estimation");
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 2048), [&](const tbb::blocked_range<std::size_t>& r) {
+        std::vector<std::uint32_t> idx(k + 1);
+        std::vector<float> w(k + 1);
+        for (std::size_t i = r.begin(); i != r.end(); ++i) {
+            idx[0] = static_cast<std::uint32_t>(i);
+            std::copy(knn.Row(i).begin(), knn.Row(i).end(), idx.begin() + 1);
+            std::span<const float> weights;
+            if (opt.weighted) {
+                const float kth = std::sqrt(knn.Dist2(i)[k - 1]);
+                const float h = opt.h > 0 ? opt.h : std::max(kth * 0.5f, 1e-30f);
+                w[0] = 1.0f;
+                for (int j = 0; j < k; ++j) w[j + 1] = std::exp(-knn.Dist2(i)[j] / (h * h));
+                weights = w;
+            }
+            const CovarianceFrame f = AnalyzeNeighborhood(pts, idx, weights);
+            Vec3d normal = f.normal;
+            if (opt.refine && k >= 6) {
+                const Vec3d p = pts[i].cast<double>();
+                const LocalFrame frame = LocalFrame::FromNormal(p, f.normal);
+                PolyFit fit(2, std::max(std::sqrt(double(knn.Dist2(i)[k - 1])), 1e-30));
+                for (int j = 0; j <= k; ++j) {
+                    const Vec3d l = frame.ToLocal(pts[idx[j]].cast<double>());
+                    fit.Add(l.x(), l.y(), l.z(), weights.empty() ? 1.0 : weights[j]);
+                }
+                PolyCoeffs g;
+                if (fit.Solve(&g)) normal = frame.NormalAt(g, 0.0, 0.0);
+            }
+            res.normals[i] = normal.cast<float>();
+            res.surface_variation[i] = static_cast<float>(f.SurfaceVariation());
+        }
+        tracker.Advance(static_cast<double>(r.size()));
+    });
+    if (opt.orient)
+        res.components = OrientNormals(tree, res.normals, opt.orient_k, &res.flipped,
+                                       progress ? ProgressFn([&](double f) { return progress(0.7 + 0.3 * f); }) : ProgressFn{});
+    return res;
+}
+
+std::size_t OrientNormals(const KdTree& tree, std::vector<Vec3f>& normals, int k, std::size_t* flipped,
+                          const ProgressFn& progress) {
+    const std::size_t n = tree.size();
+    SURFEL_CHECK(normals.size() == n, normals.size() << " normals for " << n << " points");
+    if (flipped) *flipped = 0;
+    if (n == 0) return 0;
+    const auto pts = tree.points();
+    const int kk = std::max(1, std::min<int>(k, static_cast<int>(n) - 1));
+    const KnnTable knn = n > 1 ? tree.KnnAll(kk) : KnnTable{};
+
+    // Symmetric adjacency (CSR) of the k-neighbour graph.
+    std::vector<std::uint32_t> degree(n + 1, 0);
+    for (std::size_t i = 0; i < knn.size(); ++i)
+        for (auto j : knn.Row(i))
+            if (j != UINT32_MAX) {
+                ++degree[i];
+                ++degree[j];
+            }
+    std::vector<std::uint32_t> start(n + 1, 0);
+    for (std::size_t i = 0; i < n; ++i) start[i + 1] = start[i] + degree[i];
+    std::vector<std::uint32_t> adj(start[n]);
+    std::vector<std::uint32_t> fill(start.begin(), start.end() - 1);
+    for (std::size_t i = 0; i < knn.size(); ++i)
+        for (auto j : knn.Row(i))
+            if (j != UINT32_MAX) {
+                adj[fill[i]++] = j;
+                adj[fill[j]++] = static_cast<std::uint32_t>(i);
+            }
+
+    // Connected components (union-find), then each component's root and centroid.
+    std::vector<std::uint32_t> parent(n);
+    std::iota(parent.begin(), parent.end(), 0u);
+    auto find = [&](std::uint32_t x) {
+        while (parent[x] != x) x = parent[x] = parent[parent[x]];
+        return x;
+    };
+    for (std::size_t i = 0; i < n; ++i)
+        for (std::uint32_t e = start[i]; e < start[i + 1]; ++e) {
+            const std::uint32_t a = find(static_cast<std::uint32_t>(i)), b = find(adj[e]);
+            if (a != b) parent[std::max(a, b)] = std::min(a, b);
+        }
+    struct Comp {
+        std::uint32_t top = UINT32_MAX;
+        Vec3d sum = Vec3d::Zero();
+        std::size_t count = 0;
+    };
+    std::vector<std::uint32_t> comp_of(n);
+    std::vector<std::int64_t> comp_index(n, -1);
+    std::vector<Comp> comps;
+    for (std::size_t i = 0; i < n; ++i) {
+        const std::uint32_t r = find(static_cast<std::uint32_t>(i));
+        if (comp_index[r] < 0) {
+            comp_index[r] = static_cast<std::int64_t>(comps.size());
+            comps.emplace_back();
+        }
+        Comp& c = comps[comp_index[r]];
+        comp_of[i] = static_cast<std::uint32_t>(comp_index[r]);
+        c.sum += pts[i].cast<double>();
+        ++c.count;
+        if (c.top == UINT32_MAX || pts[i].z() > pts[c.top].z()) c.top = static_cast<std::uint32_t>(i);
+    }
+
+    // Prim's algorithm from each root, cost 1 - |ni . nj|; ties broken by index (deterministic).
+    struct Edge {
+        float cost;
+        std::uint32_t to, from;
+        bool operator>(const Edge& o) const {
+            return cost > o.cost || (cost == o.cost && (to > o.to || (to == o.to && from > o.from)));
+        }
+    };
+    std::vector<char> visited(n, 0);
+    std::priority_queue<Edge, std::vector<Edge>, std::greater<Edge>> heap;
+    ProgressTracker tracker(progress, static_cast<double>(n), "normal orientation");
+    std::size_t flips = 0, done = 0;
+    auto push_edges = [&](std::uint32_t u) {
+        for (std::uint32_t e = start[u]; e < start[u + 1]; ++e) {
+            const std::uint32_t v = adj[e];
+            if (!visited[v]) heap.push({1.0f - std::abs(normals[u].dot(normals[v])), v, u});
+        }
+    };
+    for (const Comp& c : comps) {
+        const Vec3d centroid = c.sum / static_cast<double>(c.count);
+        const std::uint32_t root = c.top;
+        Vec3d away = pts[root].cast<double>() - centroid;
+        if (away.squaredNorm() == 0.0) away = Vec3d::UnitZ();
+        if (normals[root].cast<double>().dot(away) < 0) {
+            normals[root] = -normals[root];
+            ++flips;
+        }
+        visited[root] = 1;
+        push_edges(root);
+        while (!heap.empty()) {
+            const Edge e = heap.top();
+            heap.pop();
+            if (visited[e.to]) continue;
+            visited[e.to] = 1;
+            if (normals[e.from].dot(normals[e.to]) < 0) {
+                normals[e.to] = -normals[e.to];
+                ++flips;
+            }
+            push_edges(e.to);
+            if ((++done & 0xFFFF) == 0) tracker.Advance(65536.0);
+        }
+    }
+    if (flipped) *flipped = flips;
+    return comps.size();
+}
+
+std::vector<float> NormalVariation(const KdTree& tree, std::span<const Vec3f> normals, int k) {
+    const std::size_t n = tree.size();
+    SURFEL_CHECK(normals.size() == n);
+    std::vector<float> out(n, 0.0f);
+    if (n < 2) return out;
+    const KnnTable knn = tree.KnnAll(std::min<int>(k, static_cast<int>(n) - 1));
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 2048), [&](const tbb::blocked_range<std::size_t>& r) {
+        for (std::size_t i = r.begin(); i != r.end(); ++i) {
+            Eigen::Matrix3d C = normals[i].cast<double>() * normals[i].cast<double>().transpose();
+            for (auto j : knn.Row(i))
+                if (j != UINT32_MAX) C += normals[j].cast<double>() * normals[j].cast<double>().transpose();
+            Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es;
+            es.computeDirect(C / static_cast<double>(knn.k + 1));
+            out[i] = static_cast<float>(es.eigenvalues()[1]);
+        }
+    });
+    return out;
+}
+
+}  // namespace surfel

@@ -1,0 +1,90 @@
+#include "surfel/surface/surface_error.h"
+
+#include <algorithm>
+#include <cmath>
+#include <numeric>
+#include <random>
+
+#include "surfel/base/error.h"
+#include "surfel/spatial/kd_tree.h"
+#include "surfel/surface/mls.h"
+
+namespace surfel {
+namespace {
+
+struct Sums {
+    double max = 0, sum = 0, sum2 = 0;
+    std::size_t n = 0, failed = 0;
+};
+
+Sums OneSided(const PointCloud& p, const PointCloud& p_prime, float h_src, float h_dst, int degree, std::size_t max_samples,
+              std::uint64_t seed, const ProgressFn& progress) {
+    if (p.size() < 3 || p_prime.size() < 3)
+        throw Error(ErrorCode::kInvalidArgument, "surface error needs at least 3 points in each cloud");
+    // Q: a subset of P, projected onto S.
+    std::vector<std::uint32_t> idx(p.size());
+    std::iota(idx.begin(), idx.end(), 0u);
+    if (max_samples > 0 && max_samples < idx.size()) {
+        std::mt19937_64 rng(seed);
+        for (std::size_t i = 0; i < max_samples; ++i) {  // partial Fisher-Yates, portable
+            const std::size_t j = i + static_cast<std::size_t>(rng() % (idx.size() - i));
+            std::swap(idx[i], idx[j]);
+        }
+        idx.resize(max_samples);
+        std::sort(idx.begin(), idx.end());
+    }
+    std::vector<Vec3f> q0(idx.size());
+    for (std::size_t i = 0; i < idx.size(); ++i) q0[i] = p.positions[idx[i]];
+    KdTree tree_src(p.positions);
+    MlsOptions src_opt;
+    src_opt.h = h_src;
+    MlsSurface s(p, tree_src, src_opt);
+    auto q = s.ProjectAll(q0, progress ? ProgressFn([&](double f) { return progress(0.5 * f); }) : ProgressFn{});
+    KdTree tree_dst(p_prime.positions);
+    MlsOptions dst_opt;
+    dst_opt.h = h_dst;
+    dst_opt.degree = degree;
+    MlsSurface s_prime(p_prime, tree_dst, dst_opt);
+    auto proj = s_prime.ProjectAll(q.positions, progress ? ProgressFn([&](double f) { return progress(0.5 + 0.5 * f); }) : ProgressFn{});
+    // Samples that failed either projection are left out (counted); the check below finds them.
+    Sums sums;
+    for (std::size_t i = 0; i < q0.size(); ++i) {
+        const bool ok = proj.normals[i].squaredNorm() > 0 && q.normals[i].squaredNorm() > 0;
+        if (!ok) {
+            ++sums.failed;
+            continue;
+        }
+        const double d = (q.positions[i] - proj.positions[i]).cast<double>().norm();
+        sums.max = std::max(sums.max, d);
+        sums.sum += d;
+        sums.sum2 += d * d;
+        ++sums.n;
+    }
+    return sums;
+}
+
+}  // namespace
+
+SurfaceError MeasureSurfaceError(const PointCloud& p, const PointCloud& p_prime, const SurfaceErrorOptions& o,
+                                 const ProgressFn& progress) {
+    Sums a = OneSided(p, p_prime, o.h_source, o.h_target, o.degree, o.max_samples, o.seed, progress);
+    if (o.symmetric) {
+        Sums b = OneSided(p_prime, p, o.h_target, o.h_source, o.degree, o.max_samples, o.seed + 1, {});
+        a.max = std::max(a.max, b.max);
+        a.sum += b.sum;
+        a.sum2 += b.sum2;
+        a.n += b.n;
+        a.failed += b.failed;
+    }
+    SurfaceError e;
+    e.max = a.max;
+    e.avg = a.n ? a.sum / static_cast<double>(a.n) : 0.0;
+    e.rms = a.n ? std::sqrt(a.sum2 / static_cast<double>(a.n)) : 0.0;
+    e.diagonal = p.Bounds().Diagonal();
+    e.samples = a.n;
+    e.failed = a.failed;
+    if (a.n == 0) throw Error(ErrorCode::kInvalidArgument, "surface error: no sample could be projected onto both surfaces");
+    return e;
+}
+
+}  // namespace surfel

@@ -1,0 +1,40 @@
+#pragma once
+/// \file
+/// Surface error between two point-sampled surfaces (course notes, Pauly 2.4.1, Metro-style).
+
+#include <cstdint>
+
+#include "surfel/base/point_cloud.h"
+#include "surfel/base/progress.h"
+
+namespace surfel {
+
+struct SurfaceErrorOptions {
+    float h_source = 0.0f;       ///< MLS scale for S (sampling Q on it); 0 = default of P.
+    float h_target = 0.0f;       ///< MLS scale for S' (measuring distances); 0 = default of P'.
+    std::size_t max_samples = 0; ///< |Q|: 0 = every point of P; else a seeded uniform subset.
+    std::uint64_t seed = 1;
+    /// Polynomial degree of the projection onto S'. The notes use a linear basis (1); its plane
+    /// fit sits inside curved surfaces by about h^2 / (2 r), which would dominate the error of a
+    /// good approximation, so the default is quadratic.
+    int degree = 2;
+    bool symmetric = false;      ///< Also measure S' -> S and report the larger maximum / mean of both.
+};
+
+struct SurfaceError {
+    double max = 0.0;        ///< Delta_max (eq. 2.4), absolute
+    double avg = 0.0;        ///< Delta_avg (eq. 2.5), absolute
+    double rms = 0.0;
+    double diagonal = 0.0;   ///< Bounding-box diagonal of P, the reference length
+    double max_relative() const { return diagonal > 0 ? max / diagonal : 0.0; }
+    double avg_relative() const { return diagonal > 0 ? avg / diagonal : 0.0; }
+    std::size_t samples = 0; ///< |Q| actually measured
+    std::size_t failed = 0;  ///< Samples that could not be projected (left out)
+};
+
+/// Delta_max(S, S') and Delta_avg(S, S'): Q is P projected onto its own MLS surface S (so Q lies
+/// on S), and d(q, S') = |q - Psi_P'(q)| with the MLS projection onto S' (options.degree).
+SurfaceError MeasureSurfaceError(const PointCloud& p, const PointCloud& p_prime, const SurfaceErrorOptions& options = {},
+                                 const ProgressFn& progress = {});
+
+}  // namespace surfel

@@ -1,0 +1,105 @@
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <random>
+
+#include "surfel/base/shapes.h"
+#include "surfel/spatial/kd_tree.h"
+#include "surfel/spatial/uniform_grid.h"
+
+namespace surfel {
+namespace {
+
+std::vector<Neighbor> BruteKnn(std::span<const Vec3f> pts, const Vec3f& q, int k) {
+    std::vector<Neighbor> all;
+    for (std::size_t i = 0; i < pts.size(); ++i) all.push_back({std::uint32_t(i), (pts[i] - q).squaredNorm()});
+    std::sort(all.begin(), all.end(), [](auto& a, auto& b) { return a.dist2 < b.dist2 || (a.dist2 == b.dist2 && a.index < b.index); });
+    all.resize(std::min<std::size_t>(k, all.size()));
+    return all;
+}
+
+class KdTreeTest : public ::testing::Test {
+protected:
+    void SetUp() override {
+        ShapeOptions o;
+        o.points = 3000;
+        o.noise = 0.02;
+        cloud_ = SampleShape(Shape::kTorus, o);
+        std::mt19937 rng(3);
+        std::uniform_real_distribution<float> u(-1.6f, 1.6f);
+        for (int i = 0; i < 200; ++i) queries_.emplace_back(u(rng), u(rng), u(rng) * 0.3f);
+    }
+    PointCloud cloud_;
+    std::vector<Vec3f> queries_;
+};
+
+TEST_F(KdTreeTest, KnnMatchesBruteForce) {
+    KdTree tree(cloud_.positions);
+    std::vector<Neighbor> got;
+    for (const auto& q : queries_) {
+        tree.Knn(q, 16, &got);
+        const auto want = BruteKnn(cloud_.positions, q, 16);
+        ASSERT_EQ(got.size(), want.size());
+        // FLANN sums the squared differences in another order: equal to 4 ulps.
+        for (std::size_t j = 0; j < want.size(); ++j) EXPECT_FLOAT_EQ(got[j].dist2, want[j].dist2);
+        std::vector<std::uint32_t> a, b;
+        for (std::size_t j = 0; j + 1 < want.size(); ++j) {  // the last may tie with the next
+            a.push_back(got[j].index);
+            b.push_back(want[j].index);
+        }
+        std::sort(a.begin(), a.end());
+        std::sort(b.begin(), b.end());
+        EXPECT_EQ(a, b);
+    }
+}
+
+TEST_F(KdTreeTest, RadiusMatchesBruteForce) {
+    KdTree tree(cloud_.positions);
+    std::vector<Neighbor> got;
+    for (const auto& q : queries_) {
+        tree.Radius(q, 0.15f, &got);
+        std::vector<std::uint32_t> a, b;
+        for (auto& n : got) a.push_back(n.index);
+        for (std::size_t i = 0; i < cloud_.size(); ++i)
+            if ((cloud_.positions[i] - q).squaredNorm() <= 0.15f * 0.15f) b.push_back(std::uint32_t(i));
+        std::sort(a.begin(), a.end());
+        EXPECT_EQ(a, b);
+    }
+}
+
+TEST_F(KdTreeTest, KnnAllExcludesSelfAndIsDeterministic) {
+    KdTree tree(cloud_.positions);
+    const KnnTable t1 = tree.KnnAll(8), t2 = tree.KnnAll(8);
+    EXPECT_EQ(t1.indices, t2.indices);
+    for (std::size_t i = 0; i < t1.size(); ++i) {
+        for (auto j : t1.Row(i)) EXPECT_NE(j, i);
+        const auto want = BruteKnn(cloud_.positions, cloud_.positions[i], 9);
+        EXPECT_FLOAT_EQ(t1.Dist2(i)[7], want[8].dist2);
+    }
+}
+
+TEST(KdTree, FewerPointsThanK) {
+    std::vector<Vec3f> pts = {{0, 0, 0}, {1, 0, 0}};
+    KdTree tree(pts);
+    std::vector<Neighbor> got;
+    tree.Knn({0.9f, 0, 0}, 5, &got);
+    ASSERT_EQ(got.size(), 2u);
+    EXPECT_EQ(got[0].index, 1u);
+    KdTree empty(std::span<const Vec3f>{});
+    EXPECT_EQ(empty.Nearest({0, 0, 0}).index, UINT32_MAX);
+}
+
+TEST_F(KdTreeTest, UniformGridMatchesBruteForce) {
+    UniformGrid grid(cloud_.positions, 0.2f);
+    for (const auto& q : queries_) {
+        std::vector<std::uint32_t> a, b;
+        grid.ForEachWithin(q, 0.2f, [&](std::uint32_t i, const Vec3f&, float) { a.push_back(i); });
+        for (std::size_t i = 0; i < cloud_.size(); ++i)
+            if ((cloud_.positions[i] - q).squaredNorm() <= 0.04f) b.push_back(std::uint32_t(i));
+        std::sort(a.begin(), a.end());
+        EXPECT_EQ(a, b);
+    }
+}
+
+}  // namespace
+}  // namespace surfel

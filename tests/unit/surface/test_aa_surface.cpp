@@ -1,0 +1,88 @@
+#include <gtest/gtest.h>
+
+#include "surfel/base/error.h"
+#include "surfel/base/shapes.h"
+#include "surfel/surface/aa_surface.h"
+
+namespace surfel {
+namespace {
+
+class AaSphere : public ::testing::Test {
+protected:
+    static void SetUpTestSuite() {
+        ShapeOptions o;
+        o.points = 20000;
+        o.normals = true;
+        cloud_ = new PointCloud(SampleShape(Shape::kSphere, o));
+    }
+    static void TearDownTestSuite() { delete cloud_; }
+    static PointCloud* cloud_;
+};
+PointCloud* AaSphere::cloud_ = nullptr;
+
+TEST_F(AaSphere, ImplicitFunctionSignAndZeroSet) {
+    AaSurface s(*cloud_);
+    // Sign: f > 0 inside, < 0 outside (normals outward), within the tubular neighbourhood.
+    const Vec3d dir = Vec3d(0.3, -0.5, 0.8).normalized();
+    const double h = s.h();
+    auto e_in = s.Evaluate(dir * (1.0 - 0.5 * h)), e_out = s.Evaluate(dir * (1.0 + 0.5 * h));
+    ASSERT_TRUE(e_in.well_defined && e_out.well_defined);
+    EXPECT_GT(e_in.f, 0);
+    EXPECT_LT(e_out.f, 0);
+    // Zero set: bisection along the ray. The constant fit of section 3 sits inside a curved
+    // surface by O(h^2 / r) (the weighted average of a cap lies below it): |r0 - r| < h^2 / r.
+    double lo = 1.0 - 0.5 * h, hi = 1.0 + 0.5 * h;
+    for (int i = 0; i < 40; ++i) {
+        const double mid = 0.5 * (lo + hi);
+        (s.Evaluate(dir * mid).f > 0 ? lo : hi) = mid;
+    }
+    EXPECT_NEAR(lo, 1.0, h * h);
+    EXPECT_LT(lo, 1.0);
+    // On the zero set n(x) is the radial direction.
+    EXPECT_GT(s.Evaluate(dir * lo).n.dot(dir), 0.9995);
+}
+
+TEST_F(AaSphere, RayIntersectionConvergesOntoTheSphere) {
+    AaSurface s(*cloud_);
+    AaCounters counters;
+    int hits = 0;
+    double worst = 0, worst_angle = 0;
+    for (int i = 0; i < 200; ++i) {
+        // A ray from outside at the sphere, through the ball of the point nearest to its hit.
+        const double u = -0.6 + 0.006 * i, v = 0.3 - 0.002 * i;
+        const Vec3d o(u, v, 5.0), d(0, 0, -1);
+        const double t_true = 5.0 - std::sqrt(1.0 - u * u - v * v);
+        const Vec3d hit_true = o + t_true * d;
+        // Try every ball whose centre is near the true hit (what the renderer's traversal does).
+        std::optional<AaHit> best;
+        for (std::uint32_t b = 0; b < cloud_->size(); ++b) {
+            if ((cloud_->positions[b].cast<double>() - hit_true).norm() > 2 * s.BallRadius(b)) continue;
+            auto h = s.IntersectInBall(b, o, d, 0.0, 1e30, &counters);
+            if (h && (!best || h->t < best->t)) best = h;
+        }
+        ASSERT_TRUE(best) << "ray " << i;
+        ++hits;
+        worst = std::max(worst, std::abs(best->t - t_true));
+        worst_angle = std::max(worst_angle, std::acos(std::min(1.0, best->normal.dot(hit_true.normalized()))) * 180 / M_PI);
+    }
+    EXPECT_EQ(hits, 200);
+    EXPECT_LT(worst, 1e-3);        // depth within 1e-3 r
+    EXPECT_LT(worst_angle, 1.0);   // normal within 1 degree
+    EXPECT_GT(counters.cache_hits, 0u);
+    EXPECT_GT(counters.converged, 0u);
+}
+
+TEST(AaSurface, RayMissesFarFromThePoints) {
+    ShapeOptions o;
+    o.points = 2000;
+    const PointCloud c = SampleShape(Shape::kPlane, o);
+    AaSurface s(c);
+    AaCounters counters;
+    // Parallel to the plane, above it: no intersection in any ball.
+    for (std::uint32_t b = 0; b < 50; ++b)
+        EXPECT_FALSE(s.IntersectInBall(b, Vec3d(-2, 0, 0.5), Vec3d(1, 0, 0), 0, 1e30, &counters));
+    EXPECT_THROW(AaSurface(c, AaOptions{.degree = 3}), Error);
+}
+
+}  // namespace
+}  // namespace surfel

@@ -1,0 +1,86 @@
+#include <gtest/gtest.h>
+
+#include "surfel/base/shapes.h"
+#include "surfel/surface/mls.h"
+
+namespace surfel {
+namespace {
+
+TEST(Mls, NoisySphereProjectsToItsRadius) {
+    ShapeOptions o;
+    o.points = 20000;
+    o.noise = 0.01;  // 1 % of r
+    o.normals = true;
+    const PointCloud c = SampleShape(Shape::kSphere, o);
+    KdTree tree(c.positions);
+    MlsOptions m;
+    m.h = 0.1f;  // about 6 spacings: averages enough samples to suppress the noise
+    MlsSurface mls(c, tree, m);
+    const auto b = mls.ProjectAll(c.positions);
+    EXPECT_EQ(b.failed, 0u);
+    double sum = 0, worst = 0;
+    for (std::size_t i = 0; i < c.size(); ++i) {
+        const double r = b.positions[i].cast<double>().norm();
+        sum += r;
+        worst = std::max(worst, std::abs(r - 1.0));
+        ASSERT_GT(b.normals[i].dot(c.positions[i].normalized()), 0.99f);
+    }
+    EXPECT_NEAR(sum / c.size(), 1.0, 0.002);  // mean radius within 0.2 % of r
+    EXPECT_LT(worst, 0.01);                    // and every point closer than the noise level
+}
+
+TEST(Mls, PlaneIsReproducedExactly) {
+    ShapeOptions o;
+    o.points = 4000;
+    const PointCloud c = SampleShape(Shape::kPlane, o);
+    KdTree tree(c.positions);
+    for (int degree : {0, 1, 2}) {
+        MlsOptions m;
+        m.degree = degree;
+        MlsSurface mls(c, tree, m);
+        for (const Vec3f& x : {Vec3f(0.1f, 0.2f, 0.05f), Vec3f(-0.3f, 0.4f, -0.02f), Vec3f(0, 0, 0)}) {
+            auto p = mls.Project(x);
+            ASSERT_TRUE(p);
+            EXPECT_NEAR(p->position.z(), 0.0f, 1e-6f);
+            EXPECT_NEAR(p->position.x(), x.x(), 1e-5f);
+            EXPECT_NEAR(std::abs(p->normal.z()), 1.0f, 1e-6f);
+        }
+    }
+}
+
+TEST(Mls, QuadraticBeatsPlanarOnACurvedSurface) {
+    ShapeOptions o;
+    o.points = 5000;
+    const PointCloud c = SampleShape(Shape::kSphere, o);
+    KdTree tree(c.positions);
+    auto error = [&](int degree) {
+        MlsOptions m;
+        m.degree = degree;
+        m.h = 0.15f;
+        MlsSurface mls(c, tree, m);
+        const auto b = mls.ProjectAll(c.positions);
+        double e = 0;
+        for (const auto& p : b.positions) e = std::max(e, std::abs(p.cast<double>().norm() - 1.0));
+        return e;
+    };
+    const double e1 = error(1), e2 = error(2);
+    EXPECT_LT(e2, 1e-3);
+    EXPECT_LT(e2, 0.5 * e1);
+}
+
+TEST(Mls, AdaptiveScaleFollowsDensityAndTooFewNeighboursFail) {
+    ShapeOptions o;
+    o.points = 3000;
+    const PointCloud c = SampleShape(Shape::kSphere, o);
+    KdTree tree(c.positions);
+    MlsOptions m;
+    m.adaptive = true;
+    MlsSurface mls(c, tree, m);
+    auto p = mls.Project(Vec3f(0.0f, 0.0f, 1.02f));
+    ASSERT_TRUE(p);
+    EXPECT_NEAR(p->position.norm(), 1.0f, 2e-3f);
+    EXPECT_FALSE(mls.Project(Vec3f(10, 10, 10)));  // nothing within reach
+}
+
+}  // namespace
+}  // namespace surfel
