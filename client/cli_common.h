@@ -48,5 +48,6 @@ void SaveCloud(const PointCloud& cloud, const std::string& path, bool ascii = fa
 /// Each module of the CLI registers its subcommands here.
 void RegisterIoCommands(CLI::App& app);
 void RegisterSurfaceCommands(CLI::App& app);
+void RegisterRenderCommands(CLI::App& app);
 
 }  // namespace surfel::cli

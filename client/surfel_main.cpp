@@ -16,6 +16,7 @@ int main(int argc, char** argv) {
                "Run `surfel <command> --help` for a command's options and an example.");
     RegisterIoCommands(app);
     RegisterSurfaceCommands(app);
+    RegisterRenderCommands(app);
     try {
         app.parse(argc, argv);
     } catch (const CLI::ParseError& e) {

@@ -3,6 +3,7 @@
 /// PointCloud: the struct-of-arrays point set every module works on, and bounding boxes.
 
 #include <Eigen/Core>
+#include <Eigen/Geometry>
 #include <array>
 #include <cstdint>
 #include <limits>

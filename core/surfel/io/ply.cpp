@@ -340,10 +340,17 @@ public:
     }
 
     // Reads all records of `e`; sinks[i] receives scalar property i. `faces` handles the list.
-    void Read(const Element& e, const std::vector<Sink>& sinks, FaceSink* faces) {
+    // `capacity` is MaxRecords(e) at the element's start: the sinks hold that many records, and
+    // a record at or past it cannot be complete in the remaining data.
+    void Read(const Element& e, const std::vector<Sink>& sinks, FaceSink* faces, std::uint64_t capacity) {
         if (h_.format != PlyFormat::kAscii && !e.HasLists()) return ReadFixedBinary(e, sinks);
         std::vector<std::uint32_t> poly;
         for (std::uint64_t i = 0; i < e.count; ++i) {
+            if (i >= capacity) {
+                if (h_.format != PlyFormat::kAscii) Truncated(e, i);
+                Fail(file_, "line " + std::to_string(line_) + ": unexpected end of file: element '" + e.name + "' declares " +
+                                std::to_string(e.count) + " records, found " + std::to_string(i));
+            }
             if (h_.format == PlyFormat::kAscii) ReadAsciiRecord(e, i, sinks, faces, poly);
             else ReadBinaryRecord(e, i, sinks, faces, poly);
         }
@@ -510,8 +517,9 @@ PointCloud ParsePly(std::string_view data, std::string_view file, const PlyReadO
     for (const auto& e : h.elements) {
         std::vector<Sink> sinks(e.props.size());
         FaceSink faces;
+        const std::uint64_t capacity = body.MaxRecords(e);
         if (&e == vertex) {
-            const std::uint64_t n = body.MaxRecords(e);
+            const std::uint64_t n = capacity;
             auto idx = [&](const char* name) { return e.Find(name); };
             auto bind_vec3 = [&](std::vector<Vec3f>& dst, const char* a, const char* b, const char* c) {
                 const int ia = idx(a), ib = idx(b), ic = idx(c);
@@ -562,14 +570,11 @@ PointCloud ParsePly(std::string_view data, std::string_view file, const PlyReadO
             if (faces.list_index >= 0) {
                 if (IsFloatType(e.props[faces.list_index].type))
                     Fail(file, "header line " + std::to_string(e.header_line) + ": face list '" + e.props[faces.list_index].name + "' has a floating-point item type");
-                cloud.triangles.reserve(body.MaxRecords(e));
+                cloud.triangles.reserve(capacity);
                 faces.triangles = &cloud.triangles;
             }
         }
-        body.Read(e, sinks, faces.triangles ? &faces : nullptr);
-        if (&e == vertex) {
-            // Arrays were sized by MaxRecords (== count when the data is complete).
-        }
+        body.Read(e, sinks, faces.triangles ? &faces : nullptr, capacity);
         if (faces.triangles && info) info->face_count = faces.polygons;
     }
     body.Finish();

@@ -86,6 +86,10 @@ std::vector<Case> Cases() {
          ErrorCode::kInvalidArgument, "bad.ply: line 12: face 0, field 'vertex_indices': list declares 4 items but the line has 2"},
         {"binary_truncated", BinaryVertices(10, 4), ErrorCode::kInvalidArgument,
          "bad.ply: truncated data: element 'vertex' declares 10 records but the file ends in record 4 (byte offset 164)"},
+        // Found by the fuzzer: a record with a list, cut off after its first fields.
+        {"binary_list_record_cut", std::string("ply\nformat binary_little_endian 1.0\nelement vertex 2\n") + kXyzHeader +
+                                       "property list uchar int ids\nend_header\n" + std::string(13, '\0') + std::string(8, '\0'),
+         ErrorCode::kInvalidArgument, "bad.ply: truncated data: element 'vertex' declares 2 records but the file ends in record 1 (byte offset 164)"},
         {"binary_extra_data", BinaryVertices(2, 3), ErrorCode::kInvalidArgument,
          "bad.ply: 12 bytes of unexpected data after the last element (byte offset 139; the header's counts do not match the data)"},
     };

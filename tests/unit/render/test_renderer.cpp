@@ -1,0 +1,193 @@
+#include <gtest/gtest.h>
+
+#include <filesystem>
+
+#include "surfel/base/error.h"
+#include "surfel/base/shapes.h"
+#include "surfel/io/image.h"
+#include "surfel/render/renderer.h"
+
+namespace surfel {
+namespace {
+
+PointCloud Sphere() {
+    ShapeOptions o;
+    o.points = 30000;
+    o.normals = true;
+    return SampleShape(Shape::kSphere, o);
+}
+
+// Analytic ray-sphere (unit sphere at the origin): the first t, or nullopt.
+std::optional<double> HitSphere(const Vec3d& o, const Vec3d& d) {
+    const double b = o.dot(d), c = o.squaredNorm() - 1.0, disc = b * b - c;
+    if (disc < 0) return std::nullopt;
+    return -b - std::sqrt(disc);
+}
+
+TEST(Render, SphereHeadOnMatchesAnalyticMaskDepthAndNormals) {
+    const PointCloud cloud = Sphere();
+    RenderOptions opt;
+    opt.camera.eye = {0, 0, 4};
+    opt.camera.width = opt.camera.height = 64;
+    opt.camera.fovy_deg = 40;
+    opt.shadows = false;
+    const RenderResult r = Render(cloud, opt);
+    const Image& img = r.image;
+    const double pixel_angle = 40.0 / 64 * M_PI / 180;  // one pixel, in radians at the eye
+    int mask_errors = 0, checked = 0;
+    double worst_depth = 0, worst_angle = 0;
+    for (int y = 0; y < 64; ++y)
+        for (int x = 0; x < 64; ++x) {
+            const Vec3d d = opt.camera.Direction(x + 0.5, y + 0.5);
+            const auto t = HitSphere(opt.camera.eye, d);
+            // Distance of the ray from the silhouette, in pixels (rays within one pixel are exempt).
+            const double closest = (opt.camera.eye - opt.camera.eye.dot(d) * d).norm();
+            const double silhouette_px = std::abs(std::asin(std::min(1.0, closest / 4.0)) - std::asin(0.25)) / pixel_angle;
+            const bool hit = img.At(x, y, 3) > 0.5f;
+            if (silhouette_px <= 1.0) continue;
+            ++checked;
+            if (hit != t.has_value()) ++mask_errors;
+            if (hit && t) {
+                worst_depth = std::max(worst_depth, std::abs(img.At(x, y, 4) - *t));
+                const Vec3d n(img.At(x, y, 5), img.At(x, y, 6), img.At(x, y, 7));
+                const Vec3d truth = (opt.camera.eye + *t * d).normalized();
+                worst_angle = std::max(worst_angle, std::acos(std::min(1.0, n.dot(truth))) * 180 / M_PI);
+            }
+            if (!hit) {
+                EXPECT_TRUE(std::isinf(img.At(x, y, 4)));
+                EXPECT_EQ(img.At(x, y, 3), 0.0f);
+            }
+        }
+    EXPECT_GT(checked, 3000);
+    EXPECT_EQ(mask_errors, 0);
+    EXPECT_LT(worst_depth, 1e-3);   // within 1e-3 r of the analytic intersection
+    EXPECT_LT(worst_angle, 1.0);    // normals within 1 degree
+    EXPECT_GT(r.stats.hits, 0u);
+    EXPECT_GT(r.stats.surface.cache_hits, 0u);
+}
+
+TEST(Render, TiltedPlaneDepth) {
+    ShapeOptions o;
+    o.points = 20000;
+    PointCloud plane = SampleShape(Shape::kPlane, o);
+    const Eigen::AngleAxisf tilt(0.5f, Vec3f::UnitX());
+    for (auto& p : plane.positions) p = tilt * p;
+    const Vec3d n = (tilt * Vec3f::UnitZ()).cast<double>();
+    RenderOptions opt;
+    opt.camera.eye = {0.1, 0.2, 3};
+    opt.camera.width = opt.camera.height = 32;
+    opt.camera.fovy_deg = 20;
+    opt.shadows = false;
+    const RenderResult r = Render(plane, opt);
+    int hits = 0;
+    for (int y = 4; y < 28; ++y)
+        for (int x = 4; x < 28; ++x) {
+            const Vec3d d = opt.camera.Direction(x + 0.5, y + 0.5);
+            const double t = -opt.camera.eye.dot(n) / d.dot(n);
+            ASSERT_GT(r.image.At(x, y, 3), 0.5f) << x << "," << y;
+            EXPECT_NEAR(r.image.At(x, y, 4), t, 1e-4);
+            ++hits;
+        }
+    EXPECT_EQ(hits, 24 * 24);
+}
+
+TEST(Render, PointBehindTheSphereIsInShadow) {
+    PointCloud scene = Sphere();
+    ShapeOptions o;
+    o.points = 40000;
+    o.normals = true;
+    o.scale = 3;
+    PointCloud wall = SampleShape(Shape::kPlane, o);  // z = -2.5 behind the sphere, facing it
+    for (auto& p : wall.positions) p.z() = -2.5f;
+    scene.positions.insert(scene.positions.end(), wall.positions.begin(), wall.positions.end());
+    scene.normals.insert(scene.normals.end(), wall.normals.begin(), wall.normals.end());
+    RenderOptions opt;
+    opt.camera.eye = {0, 0, 6};
+    opt.camera.width = opt.camera.height = 48;
+    opt.camera.fovy_deg = 50;
+    opt.lights = {{Light::Kind::kDirectional, {0, 0, -1}, {1, 1, 1}, 1.0}};  // light from the camera
+    opt.ambient = 0.1;
+    opt.specular = 0;
+    const RenderResult r = Render(scene, opt);
+    // The light travels along -z, so wall points (x, y, -2.5) with x^2 + y^2 < 1 lie in the
+    // sphere's shadow and all others are lit.
+    auto pixel_of = [&](const Vec3d& p) {  // the pixel whose ray passes closest to p
+        int best_x = 0, best_y = 0;
+        double best = -2;
+        const Vec3d want = (p - opt.camera.eye).normalized();
+        for (int y = 0; y < 48; ++y)
+            for (int x = 0; x < 48; ++x) {
+                const double c = opt.camera.Direction(x + 0.5, y + 0.5).dot(want);
+                if (c > best) best = c, best_x = x, best_y = y;
+            }
+        return std::pair{best_x, best_y};
+    };
+    const Vec3d lit(0.0, 2.2, -2.5);
+    const auto [lx, ly] = pixel_of(lit);
+    EXPECT_NEAR(r.image.At(lx, ly, 4), (lit - opt.camera.eye).norm(), 0.05);  // it is the wall
+    EXPECT_GT(r.image.At(lx, ly, 0), 0.5f);                                    // lit: ambient + Lambert
+    // From the camera the shadowed wall is hidden by the sphere; look from above instead.
+    opt.camera.eye = {0, 5, 4};
+    opt.camera.target = {0, 0, -2.5};
+    const RenderResult r2 = Render(scene, opt);
+    const auto [hx, hy] = pixel_of({0.0, -0.6, -2.5});
+    ASSERT_GT(r2.image.At(hx, hy, 3), 0.5f);
+    const double t_wall = (Vec3d(0, -0.6, -2.5) - opt.camera.eye).norm();
+    EXPECT_NEAR(r2.image.At(hx, hy, 4), t_wall, 0.1);    // the wall, not the sphere
+    EXPECT_NEAR(r2.image.At(hx, hy, 0), 0.1 * 0.8, 1e-4);  // ambient only: in shadow
+    EXPECT_GT(r2.stats.shadow_rays, 0u);
+}
+
+TEST(Render, ExrRoundTripHasTheChannelsWritten) {
+    const PointCloud cloud = Sphere();
+    RenderOptions opt;
+    opt.camera.width = 24;
+    opt.camera.height = 16;
+    opt.samples_per_pixel = 4;
+    const RenderResult r = Render(cloud, opt);
+    const auto path = std::filesystem::temp_directory_path() / ("surfel_render_" + std::to_string(::getpid()) + ".exr");
+    WriteImage(r.image, path.string());
+    const Image back = ReadImage(path.string());
+    std::filesystem::remove(path);
+    EXPECT_EQ(back.width, 24);
+    EXPECT_EQ(back.height, 16);
+    for (const char* c : {"R", "G", "B", "A", "Z", "N.X", "N.Y", "N.Z"}) {
+        const int i = back.ChannelIndex(c), j = r.image.ChannelIndex(c);
+        ASSERT_GE(i, 0) << c;
+        for (int y = 0; y < 16; ++y)
+            for (int x = 0; x < 24; ++x) {
+                const float a = back.At(x, y, i), b = r.image.At(x, y, j);
+                if (std::isinf(b)) EXPECT_TRUE(std::isinf(a));
+                else EXPECT_EQ(a, b) << c << " " << x << "," << y;
+            }
+    }
+    const std::string png = EncodeImage(r.image, ImageFormat::kPng);
+    EXPECT_EQ(png.substr(1, 3), "PNG");
+}
+
+TEST(Render, SameImageWhateverTheTileSize) {
+    const PointCloud cloud = Sphere();
+    RenderOptions opt;
+    opt.camera.width = 40;
+    opt.camera.height = 30;
+    opt.tile = 16;
+    const RenderResult a = Render(cloud, opt);
+    opt.tile = 7;
+    const RenderResult b = Render(cloud, opt);
+    EXPECT_EQ(a.image.pixels.size(), b.image.pixels.size());
+    for (std::size_t i = 0; i < a.image.pixels.size(); ++i)
+        if (!std::isinf(a.image.pixels[i])) ASSERT_EQ(a.image.pixels[i], b.image.pixels[i]) << i;
+}
+
+TEST(Render, BadOptionsAreInvalidArgument) {
+    const PointCloud cloud = Sphere();
+    RenderOptions opt;
+    opt.camera.width = 0;
+    EXPECT_THROW(Render(cloud, opt), Error);
+    opt.camera.width = 8;
+    opt.camera.eye = opt.camera.target;
+    EXPECT_THROW(Render(cloud, opt), Error);
+}
+
+}  // namespace
+}  // namespace surfel
