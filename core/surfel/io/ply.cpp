@@ -324,15 +324,18 @@ class BodyReader {
 public:
     BodyReader(std::string_view data, std::string_view file, const Header& h)
         : data_(data), file_(file), h_(h), pos_(h.body_offset), line_(h.body_line),
-          swap_((h.format == PlyFormat::kBinaryBigEndian) == (std::endian::native == std::endian::little)) {}
+          swap_((h.format == PlyFormat::kBinaryBigEndian) == (std::endian::native == std::endian::little)) {
+        if (h.format == PlyFormat::kAscii)  // lines in the body, counted once (MaxRecords derives the rest)
+            body_lines_ = 1 + static_cast<std::uint64_t>(std::count(data_.begin() + pos_, data_.end(), '\n'));
+    }
 
     std::size_t remaining() const { return data_.size() - pos_; }
 
     // Upper bound on how many records of `e` the remaining data can hold (to size arrays safely).
     std::uint64_t MaxRecords(const Element& e) const {
         if (h_.format == PlyFormat::kAscii) {
-            std::uint64_t lines = 1 + static_cast<std::uint64_t>(std::count(data_.begin() + pos_, data_.end(), '\n'));
-            return std::min<std::uint64_t>(e.count, lines);
+            const std::uint64_t consumed = static_cast<std::uint64_t>(line_ - h_.body_line);
+            return std::min<std::uint64_t>(e.count, body_lines_ - std::min(consumed, body_lines_));
         }
         const std::size_t fs = e.FixedSize();
         if (fs == 0) return e.count;
@@ -346,11 +349,9 @@ public:
         if (h_.format != PlyFormat::kAscii && !e.HasLists()) return ReadFixedBinary(e, sinks);
         std::vector<std::uint32_t> poly;
         for (std::uint64_t i = 0; i < e.count; ++i) {
-            if (i >= capacity) {
-                if (h_.format != PlyFormat::kAscii) Truncated(e, i);
-                Fail(file_, "line " + std::to_string(line_) + ": unexpected end of file: element '" + e.name + "' declares " +
-                                std::to_string(e.count) + " records, found " + std::to_string(i));
-            }
+            // An ascii record needs a line of its own, so running out is found (and reported) by
+            // ReadAsciiRecord before any value is stored; a binary record may be cut off midway.
+            if (i >= capacity && h_.format != PlyFormat::kAscii) Truncated(e, i);
             if (h_.format == PlyFormat::kAscii) ReadAsciiRecord(e, i, sinks, faces, poly);
             else ReadBinaryRecord(e, i, sinks, faces, poly);
         }
@@ -488,6 +489,7 @@ private:
     std::size_t pos_;
     int line_;
     bool swap_;
+    std::uint64_t body_lines_ = 0;
     std::vector<std::string_view> toks_;
 };
 

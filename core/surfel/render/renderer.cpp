@@ -14,14 +14,16 @@
 
 namespace surfel {
 
-Vec3d Camera::Direction(double x, double y) const {
-    const Vec3d w = (target - eye).normalized();
-    const Vec3d u = w.cross(up).normalized();  // right
-    const Vec3d v = u.cross(w);                // true up
-    const double th = std::tan(0.5 * fovy_deg * std::numbers::pi / 180.0);
-    const double sx = (2.0 * x / width - 1.0) * th * double(width) / height;
-    const double sy = (1.0 - 2.0 * y / height) * th;
-    return (w + sx * u + sy * v).normalized();
+Camera::Frame Camera::MakeFrame() const {
+    Frame f;
+    f.w = (target - eye).normalized();
+    f.u = f.w.cross(up).normalized();
+    f.v = f.u.cross(f.w);
+    f.sy = std::tan(0.5 * fovy_deg * std::numbers::pi / 180.0);
+    f.sx = f.sy * double(width) / height;
+    f.width = width;
+    f.height = height;
+    return f;
 }
 
 Camera Camera::Framing(const BoundingBox& box, int width, int height, const Vec3d& from, double fovy_deg) {
@@ -45,7 +47,7 @@ struct RayContext {
     RTCIntersectContext embree;
     std::optional<AaHit> hit;
     AaCounters counters;
-    double gamma_min = -1.0;  // shadow rays: only balls with priority gamma >= this
+    double gamma_min = -1.0, gamma_max = 2.0;  // shadow rays: only balls with gamma in [min, max)
 };
 
 struct SceneData {
@@ -110,7 +112,7 @@ void OccludedFn(const RTCOccludedFunctionNArguments* args) {
     const Vec3d o(ray->org_x, ray->org_y, ray->org_z), d(ray->dir_x, ray->dir_y, ray->dir_z);
     double t0, t1, gamma;
     if (!BallInterval(*s, args->primID, o, d, ray->tnear, ray->tfar, &t0, &t1, &gamma)) return;
-    if (gamma < ctx->gamma_min) return;
+    if (gamma < ctx->gamma_min || gamma >= ctx->gamma_max) return;
     if (s->surface->IntersectInBall(args->primID, o, d, t0, t1, &ctx->counters))
         ray->tfar = -std::numeric_limits<float>::infinity();
 }
@@ -191,11 +193,10 @@ RenderResult Render(const PointCloud& cloud, const RenderOptions& opt, const Pro
     const SceneData data{&surface, &cloud};
     const EmbreeScene scene(&data, cloud.size());
 
+    const Camera::Frame frame = cam.MakeFrame();
     std::vector<Light> lights = opt.lights;
-    if (lights.empty()) {
-        const Vec3d w = (cam.target - cam.eye).normalized(), u = w.cross(cam.up).normalized(), v = u.cross(w);
-        lights.push_back({Light::Kind::kDirectional, (w - 0.6 * v + 0.5 * u).normalized(), {1, 1, 1}, 1.0});
-    }
+    if (lights.empty())
+        lights.push_back({Light::Kind::kDirectional, (frame.w - 0.6 * frame.v + 0.5 * frame.u).normalized(), {1, 1, 1}, 1.0});
     RenderResult result;
     Image& img = result.image;
     img.width = cam.width;
@@ -226,15 +227,15 @@ RenderResult Render(const PointCloud& cloud, const RenderOptions& opt, const Pro
                             px = x + ((s % strata) + Jitter(key * 2)) / strata;
                             py = y + ((s / strata) % strata + Jitter(key * 2 + 1)) / strata;
                         }
-                        const Vec3d d = cam.Direction(px, py);
+                        const Vec3d d = frame.Direction(px, py);
                         RayContext ctx;
                         rtcInitIntersectContext(&ctx.embree);
                         RTCRayHit rh = MakeRay(cam.eye, d, 0.0, std::numeric_limits<float>::infinity());
                         rtcIntersect1(scene.scene(), &ctx.embree, &rh);
                         ++local.primary_rays;
+                        local.surface.Add(ctx.counters);
                         if (!ctx.hit) {
                             rgb += opt.background;
-                            local.surface.Add(ctx.counters);
                             continue;
                         }
                         ++local.hits;
@@ -265,9 +266,11 @@ RenderResult Render(const PointCloud& cloud, const RenderOptions& opt, const Pro
                                 RayContext sctx;
                                 rtcInitIntersectContext(&sctx.embree);
                                 bool blocked = false;
-                                // Section 5: balls the ray passes near the centre first (gamma priority).
-                                for (double gmin : {0.5, -1.0}) {
+                                // Section 5: balls the ray passes near the centre first (gamma priority),
+                                // then the rest; each ball is tried in one pass only.
+                                for (const auto& [gmin, gmax] : {std::pair{0.5, 2.0}, std::pair{-1.0, 0.5}}) {
                                     sctx.gamma_min = gmin;
+                                    sctx.gamma_max = gmax;
                                     RTCRayHit sr = MakeRay(so, ldir, 0.0, ldist - 0.5 * h);
                                     rtcOccluded1(scene.scene(), &sctx.embree, &sr.ray);
                                     ++local.shadow_rays;
@@ -284,7 +287,6 @@ RenderResult Render(const PointCloud& cloud, const RenderOptions& opt, const Pro
                             c += lc.cwiseProduct(albedo) * ndl + lc * (opt.specular * std::pow(std::max(0.0, n.dot(hv)), opt.shininess));
                         }
                         rgb += c;
-                        local.surface.Add(ctx.counters);
                     }
                     rgb /= spp;
                     img.At(x, y, 0) = float(rgb.x());

@@ -21,8 +21,20 @@ struct Camera {
     double fovy_deg = 40.0;  ///< Vertical field of view in degrees.
     int width = 512, height = 512;
 
+    /// The camera's orthonormal frame and image-plane scale, computed once per render.
+    struct Frame {
+        Vec3d u, v, w;          ///< right, true up, forward (unit)
+        double sx, sy;          ///< half extents of the image plane at distance 1
+        double width, height;
+        /// Unit direction through image position (x, y) in pixels (x right, y down).
+        Vec3d Direction(double x, double y) const {
+            return (w + (2.0 * x / width - 1.0) * sx * u + (1.0 - 2.0 * y / height) * sy * v).normalized();
+        }
+    };
+    Frame MakeFrame() const;
+
     /// Unit direction through image position (x, y) in pixels (x right, y down).
-    Vec3d Direction(double x, double y) const;
+    Vec3d Direction(double x, double y) const { return MakeFrame().Direction(x, y); }
     /// A camera that frames `box` from direction `from` (eye - target), up +y.
     static Camera Framing(const BoundingBox& box, int width, int height, const Vec3d& from = Vec3d(0, 0, 1),
                           double fovy_deg = 40.0);
