@@ -17,6 +17,7 @@ int main(int argc, char** argv) {
     RegisterIoCommands(app);
     RegisterSurfaceCommands(app);
     RegisterRenderCommands(app);
+    RegisterSimplifyCommands(app);
     try {
         app.parse(argc, argv);
     } catch (const CLI::ParseError& e) {

@@ -1,0 +1,510 @@
+// Clustering simplification (course notes, Pauly 2.1): hierarchical and incremental clustering,
+// the voxel-grid baseline, and the exact-count adjustment they share.
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <numeric>
+#include <queue>
+
+#include "surfel/base/error.h"
+#include "surfel/simplify/simplify_internal.h"
+#include "surfel/spatial/kd_tree.h"
+
+namespace surfel::detail {
+
+Spread Analyze(const Moments& m) {
+    Spread s;
+    if (m.n < 2) return s;
+    Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> solver;
+    solver.computeDirect(m.Covariance());
+    s.eigenvalues = solver.eigenvalues().cwiseMax(0.0);
+    s.v0 = solver.eigenvectors().col(0);
+    s.v2 = solver.eigenvectors().col(2);
+    return s;
+}
+
+std::size_t Compact(std::vector<std::uint32_t>& label) {
+    std::vector<std::uint32_t> remap;
+    constexpr std::uint32_t kUnset = std::numeric_limits<std::uint32_t>::max();
+    std::uint32_t next = 0;
+    for (auto& l : label) {
+        if (l >= remap.size()) remap.resize(static_cast<std::size_t>(l) + 1, kUnset);
+        if (remap[l] == kUnset) remap[l] = next++;
+        l = remap[l];
+    }
+    return next;
+}
+
+namespace {
+
+// ---------------------------------------------------------------------------------------------
+// Binary splits shared by hierarchical clustering and AdjustCount.
+
+struct Item {
+    Vec3f p;  // relative to the cloud's reference point (better conditioned moments)
+    std::uint32_t id;
+};
+
+Moments MomentsOf(std::span<const Item> items) {
+    Moments m;
+    for (const Item& it : items) m.Add(it.p);
+    return m;
+}
+
+// Splits items at the centroid across v2 (notes 2.1.2). Returns the split position (relative to
+// items.begin()), or 0 when the set cannot be split (fewer than 2 distinct points).
+std::size_t SplitItems(std::span<Item> items, const Moments& m, const Spread& s) {
+    if (items.size() < 2 || s.eigenvalues[2] <= 0.0) return 0;
+    const Eigen::Vector3d c = m.Centroid();
+    const Vec3f cf = c.cast<float>();
+    const Vec3f axis = s.v2.cast<float>();
+    auto mid = std::partition(items.begin(), items.end(),
+                              [&](const Item& it) { return (it.p - cf).dot(axis) < 0.0f; });
+    std::size_t k = static_cast<std::size_t>(mid - items.begin());
+    if (k == 0 || k == items.size()) {
+        // All on one side in float arithmetic: split at the median projection instead.
+        k = items.size() / 2;
+        std::nth_element(items.begin(), items.begin() + static_cast<std::ptrdiff_t>(k), items.end(),
+                         [&](const Item& a, const Item& b) {
+                             const float pa = a.p.dot(axis), pb = b.p.dot(axis);
+                             return pa < pb || (pa == pb && a.id < b.id);
+                         });
+        if (items[k].p == items[0].p && items[k].p == items[items.size() - 1].p) return 0;
+    }
+    return k;
+}
+
+std::vector<Item> MakeItems(std::span<const Vec3f> points) {
+    Vec3d ref = Vec3d::Zero();
+    for (const Vec3f& p : points) ref += p.cast<double>();
+    if (!points.empty()) ref /= static_cast<double>(points.size());
+    const Vec3f r = ref.cast<float>();
+    std::vector<Item> items(points.size());
+    for (std::size_t i = 0; i < points.size(); ++i) items[i] = {points[i] - r, static_cast<std::uint32_t>(i)};
+    return items;
+}
+
+struct Node {
+    std::uint32_t begin = 0, end = 0;
+    Moments moments;
+    Spread spread;
+    double priority = 0.0;
+    std::size_t size() const { return end - begin; }
+};
+
+double Priority(const Node& node, bool adaptive) {
+    const double n = static_cast<double>(node.size());
+    if (node.size() < 2 || node.spread.eigenvalues[2] <= 0.0) return -1.0;  // cannot split
+    // Uniform: split the largest cluster. Adaptive: weight by surface variation, with a small
+    // floor so that flat regions are still split by size once curved ones are fine enough.
+    return adaptive ? n * (node.spread.Variation() + 1e-3) : n;
+}
+
+struct ByPriority {
+    bool operator()(const Node& a, const Node& b) const {
+        if (a.priority != b.priority) return a.priority < b.priority;
+        return a.begin > b.begin;  // deterministic tie-break
+    }
+};
+
+Node MakeNode(std::span<const Item> items, std::uint32_t begin, std::uint32_t end, bool adaptive,
+              const Moments* known = nullptr) {
+    Node node;
+    node.begin = begin;
+    node.end = end;
+    node.moments = known ? *known : MomentsOf(items.subspan(begin, end - begin));
+    node.spread = Analyze(node.moments);
+    node.priority = Priority(node, adaptive);
+    return node;
+}
+
+// Splits `node` into two children (moments of the second by subtraction).
+bool SplitNode(std::vector<Item>& items, const Node& node, bool adaptive, Node& left, Node& right) {
+    std::span<Item> span(items.data() + node.begin, node.size());
+    const std::size_t k = SplitItems(span, node.moments, node.spread);
+    if (k == 0) return false;
+    const auto mid = static_cast<std::uint32_t>(node.begin + k);
+    Moments ml = MomentsOf(std::span<const Item>(items.data() + node.begin, k));
+    Moments mr = node.moments;
+    mr.n -= ml.n;
+    mr.sum -= ml.sum;
+    mr.outer -= ml.outer;
+    // Recompute the smaller side exactly and derive the other, keeping round-off bounded.
+    if (k > node.size() - k) {
+        mr = MomentsOf(std::span<const Item>(items.data() + mid, node.end - mid));
+        ml = node.moments;
+        ml.n -= mr.n;
+        ml.sum -= mr.sum;
+        ml.outer -= mr.outer;
+    }
+    left = MakeNode(items, node.begin, mid, adaptive, &ml);
+    right = MakeNode(items, mid, node.end, adaptive, &mr);
+    return true;
+}
+
+double MaxPlaneDistance(std::span<const Item> items, const Node& node) {
+    const Vec3f c = node.moments.Centroid().cast<float>();
+    const Vec3f n = node.spread.v0.cast<float>();
+    double d = 0.0;
+    for (std::uint32_t i = node.begin; i < node.end; ++i) d = std::max(d, std::abs(double((items[i].p - c).dot(n))));
+    return d;
+}
+
+Clustering LabelsFromNodes(const std::vector<Item>& items, const std::vector<Node>& leaves, std::size_t n) {
+    Clustering out;
+    out.label.assign(n, 0);
+    for (std::size_t c = 0; c < leaves.size(); ++c)
+        for (std::uint32_t i = leaves[c].begin; i < leaves[c].end; ++i) out.label[items[i].id] = static_cast<std::uint32_t>(c);
+    out.count = Compact(out.label);
+    return out;
+}
+
+}  // namespace
+
+Clustering HierarchicalClustering(std::span<const Vec3f> points, const SimplifyOptions& options,
+                                  ProgressTracker& progress) {
+    std::vector<Item> items = MakeItems(points);
+    const auto n = static_cast<std::uint32_t>(points.size());
+    std::vector<Node> leaves;
+    if (options.target > 0) {
+        // Priority-queue variant (notes 2.1.2, [BW00, SG01]): always split the cluster of highest
+        // priority until there are exactly `target` clusters.
+        std::priority_queue<Node, std::vector<Node>, ByPriority> queue;
+        queue.push(MakeNode(items, 0, n, options.adaptive));
+        std::size_t done_since_check = 0;
+        while (!queue.empty() && leaves.size() + queue.size() < options.target) {
+            Node node = queue.top();
+            queue.pop();
+            Node a, b;
+            if (node.priority < 0 || !SplitNode(items, node, options.adaptive, a, b)) {
+                leaves.push_back(node);
+                continue;
+            }
+            queue.push(std::move(a));
+            queue.push(std::move(b));
+            if (++done_since_check == 4096) {
+                progress.Advance(4096.0 / static_cast<double>(options.target));
+                done_since_check = 0;
+            }
+        }
+        while (!queue.empty()) {
+            leaves.push_back(queue.top());
+            queue.pop();
+        }
+    } else {
+        // Recursive variant: split while larger than n_max, more varied than sigma_max
+        // (adaptive) or farther from the cluster plane than the error bound.
+        const std::size_t n_max = options.max_cluster_size ? options.max_cluster_size : 10;
+        std::vector<Node> stack{MakeNode(items, 0, n, options.adaptive)};
+        std::size_t covered = 0;
+        while (!stack.empty()) {
+            Node node = std::move(stack.back());
+            stack.pop_back();
+            bool split = node.size() > n_max;
+            if (!split && options.adaptive) split = node.spread.Variation() > options.max_variation;
+            if (!split && options.error > 0) split = MaxPlaneDistance(items, node) > options.error;
+            Node a, b;
+            if (split && SplitNode(items, node, options.adaptive, a, b)) {
+                stack.push_back(std::move(b));
+                stack.push_back(std::move(a));
+                continue;
+            }
+            covered += node.size();
+            if (leaves.size() % 4096 == 0) progress.Advance(static_cast<double>(covered) / n), covered = 0;
+            leaves.push_back(std::move(node));
+        }
+    }
+    std::sort(leaves.begin(), leaves.end(), [](const Node& a, const Node& b) { return a.begin < b.begin; });
+    return LabelsFromNodes(items, leaves, n);
+}
+
+// ---------------------------------------------------------------------------------------------
+
+void AdjustCount(std::span<const Vec3f> points, Clustering& clusters, std::size_t target, bool adaptive) {
+    if (clusters.count == target || target == 0) return;
+    const std::size_t m = clusters.count;
+    std::vector<Moments> moments(m);
+    for (std::size_t i = 0; i < points.size(); ++i) moments[clusters.label[i]].Add(points[i]);
+
+    if (m > target) {
+        std::vector<double> weight(m);
+        for (std::size_t c = 0; c < m; ++c)
+            weight[c] = moments[c].n * (adaptive ? Analyze(moments[c]).Variation() + 1e-3 : 1.0);
+        std::vector<std::uint32_t> order(m);
+        std::iota(order.begin(), order.end(), 0u);
+        std::sort(order.begin(), order.end(), [&](std::uint32_t a, std::uint32_t b) {
+            return weight[a] != weight[b] ? weight[a] < weight[b] : a < b;
+        });
+        std::vector<char> dissolved(m, 0);
+        for (std::size_t i = 0; i < m - target; ++i) dissolved[order[i]] = 1;
+        std::vector<Vec3f> centroids;
+        std::vector<std::uint32_t> survivor;
+        for (std::uint32_t c = 0; c < m; ++c)
+            if (!dissolved[c]) {
+                centroids.push_back(moments[c].Centroid().cast<float>());
+                survivor.push_back(c);
+            }
+        const KdTree tree(centroids);
+        for (std::size_t i = 0; i < points.size(); ++i)
+            if (dissolved[clusters.label[i]]) clusters.label[i] = survivor[tree.Nearest(points[i]).index];
+        clusters.count = Compact(clusters.label);
+        return;
+    }
+
+    // Too few: split the largest clusters.
+    std::vector<std::vector<Item>> members(m);
+    for (std::size_t i = 0; i < points.size(); ++i)
+        members[clusters.label[i]].push_back({points[i], static_cast<std::uint32_t>(i)});
+    using Entry = std::pair<std::size_t, std::uint32_t>;  // (size, cluster)
+    std::priority_queue<Entry> queue;
+    for (std::uint32_t c = 0; c < m; ++c) queue.push({members[c].size(), c});
+    while (members.size() < target && !queue.empty()) {
+        const std::uint32_t c = queue.top().second;
+        queue.pop();
+        auto& items = members[c];
+        const Moments mom = MomentsOf(items);
+        const std::size_t k = SplitItems(items, mom, Analyze(mom));
+        if (k == 0) continue;
+        std::vector<Item> second(items.begin() + static_cast<std::ptrdiff_t>(k), items.end());
+        items.resize(k);
+        const auto d = static_cast<std::uint32_t>(members.size());
+        members.push_back(std::move(second));
+        queue.push({members[c].size(), c});
+        queue.push({members[d].size(), d});
+    }
+    for (std::uint32_t c = 0; c < members.size(); ++c)
+        for (const Item& it : members[c]) clusters.label[it.id] = c;
+    clusters.count = Compact(clusters.label);
+}
+
+// ---------------------------------------------------------------------------------------------
+// Incremental clustering (notes 2.1.1).
+
+namespace {
+
+struct GrowParams {
+    std::size_t n_max;
+    double sigma_max;  // <= 0: no variation bound
+};
+
+Clustering GrowClusters(std::span<const Vec3f> points, const KnnTable& graph, const GrowParams& params,
+                        std::uint64_t seed) {
+    const std::size_t n = points.size();
+    constexpr std::uint32_t kNone = std::numeric_limits<std::uint32_t>::max();
+    std::vector<std::uint32_t> label(n, kNone), pushed(n, kNone);
+    std::vector<Moments> moments;
+    std::vector<double> variation;
+    std::vector<std::uint32_t> frontier;  // seeds for the next clusters: neighbours of finished ones
+    std::size_t frontier_head = 0, scan = 0;
+    Random rng(seed);
+    std::uint32_t seed_point = static_cast<std::uint32_t>(rng.Index(n));
+    using Candidate = std::pair<float, std::uint32_t>;
+    std::priority_queue<Candidate, std::vector<Candidate>, std::greater<>> heap;
+    for (;;) {
+        // Next seed: a neighbour of an earlier cluster, else the next unassigned point.
+        while (seed_point == kNone || label[seed_point] != kNone) {
+            if (frontier_head < frontier.size()) {
+                seed_point = frontier[frontier_head++];
+                continue;
+            }
+            while (scan < n && label[scan] != kNone) ++scan;
+            if (scan == n) break;
+            seed_point = static_cast<std::uint32_t>(scan);
+        }
+        if (seed_point == kNone || label[seed_point] != kNone) break;
+        const auto c = static_cast<std::uint32_t>(moments.size());
+        Moments m;
+        double sigma = 0.0;
+        heap = {};
+        heap.push({0.0f, seed_point});
+        pushed[seed_point] = c;
+        const Vec3f s = points[seed_point];
+        while (!heap.empty() && m.n < static_cast<double>(params.n_max)) {
+            const std::uint32_t i = heap.top().second;
+            heap.pop();
+            if (label[i] != kNone) continue;
+            if (params.sigma_max > 0 && m.n >= 3) {
+                Moments trial = m;
+                trial.Add(points[i]);
+                const double v = Analyze(trial).Variation();
+                if (v > params.sigma_max) {
+                    sigma = v;  // stopped by the variation bound: this cluster reached it
+                    break;
+                }
+                m = trial;
+                sigma = v;
+            } else {
+                m.Add(points[i]);
+            }
+            label[i] = c;
+            for (const std::uint32_t j : graph.Row(i))
+                if (label[j] == kNone && pushed[j] != c) {
+                    pushed[j] = c;
+                    heap.push({(points[j] - s).squaredNorm(), j});
+                }
+        }
+        while (!heap.empty()) {
+            const std::uint32_t j = heap.top().second;
+            heap.pop();
+            if (label[j] == kNone) frontier.push_back(j);
+        }
+        moments.push_back(m);
+        variation.push_back(sigma);
+        seed_point = kNone;
+    }
+
+    // Stray clusters (below half of both bounds) go to the cluster with the closest centroid.
+    const std::size_t m = moments.size();
+    std::vector<char> stray(m, 0);
+    std::vector<Vec3f> centroids;
+    std::vector<std::uint32_t> keep;
+    for (std::uint32_t c = 0; c < m; ++c) {
+        const bool small = moments[c].n < 0.5 * static_cast<double>(params.n_max);
+        const bool flat = params.sigma_max <= 0 || variation[c] < 0.5 * params.sigma_max;
+        stray[c] = small && flat;
+        if (!stray[c]) {
+            centroids.push_back(moments[c].Centroid().cast<float>());
+            keep.push_back(c);
+        }
+    }
+    if (!keep.empty() && keep.size() < m) {
+        const KdTree tree(centroids);
+        for (std::size_t i = 0; i < n; ++i)
+            if (stray[label[i]]) label[i] = keep[tree.Nearest(points[i]).index];
+    }
+    Clustering out;
+    out.label = std::move(label);
+    out.count = Compact(out.label);
+    return out;
+}
+
+}  // namespace
+
+Clustering IncrementalClustering(std::span<const Vec3f> points, const SimplifyOptions& options,
+                                 ProgressTracker& progress) {
+    const std::size_t n = points.size();
+    const KdTree tree(points);
+    const KnnTable graph = tree.KnnAll(std::max(2, std::min<int>(options.neighbors, static_cast<int>(n) - 1)));
+    progress.Advance(0.1);
+    if (options.target == 0) {
+        GrowParams params{options.max_cluster_size ? options.max_cluster_size : 10,
+                          options.adaptive ? options.max_variation : 0.0};
+        Clustering c = GrowClusters(points, graph, params, options.seed);
+        progress.Advance(0.9);
+        return c;
+    }
+    // Exact target: search the bound whose clustering comes closest from above, then dissolve
+    // the surplus smallest clusters into their neighbours.
+    const double mean = static_cast<double>(n) / static_cast<double>(options.target);
+    Clustering best;
+    best.label.resize(n);
+    std::iota(best.label.begin(), best.label.end(), 0u);
+    best.count = n;
+    // The size bound n_max is searched; the adaptive variant keeps its variation bound sigma_max
+    // throughout, so curved regions get smaller clusters at every n_max.
+    const double sigma_max = options.adaptive ? options.max_variation : 0.0;
+    auto consider = [&](Clustering c) {
+        if (c.count >= options.target && c.count < best.count) best = std::move(c);
+    };
+    constexpr int kSteps = 14;
+    std::size_t lo = 1, hi = static_cast<std::size_t>(4.0 * mean) + 2;
+    for (int s = 0; s < kSteps && lo + 1 < hi; ++s) {
+        const std::size_t mid = (lo + hi) / 2;
+        Clustering c = GrowClusters(points, graph, {mid, sigma_max}, options.seed);
+        if (c.count >= options.target) {
+            lo = mid;
+            consider(std::move(c));
+        } else {
+            hi = mid;
+        }
+        progress.Advance(0.8 / kSteps);
+    }
+    AdjustCount(points, best, options.target, options.adaptive);
+    return best;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Voxel grid baseline.
+
+namespace {
+
+// Open-addressing map from cell key to a dense index.
+class CellMap {
+public:
+    explicit CellMap(std::size_t n) {
+        std::size_t cap = 16;
+        while (cap < 2 * n + 1) cap <<= 1;
+        keys_.assign(cap, kEmpty);
+        values_.resize(cap);
+        mask_ = cap - 1;
+    }
+    std::uint32_t Insert(std::uint64_t key) {
+        std::uint64_t h = (key * 0x9E3779B97F4A7C15ull) >> 17;
+        for (;; ++h) {
+            const std::size_t slot = h & mask_;
+            if (keys_[slot] == key) return values_[slot];
+            if (keys_[slot] == kEmpty) {
+                keys_[slot] = key;
+                return values_[slot] = size_++;
+            }
+        }
+    }
+    std::uint32_t size() const { return size_; }
+
+private:
+    static constexpr std::uint64_t kEmpty = ~0ull;
+    std::vector<std::uint64_t> keys_;
+    std::vector<std::uint32_t> values_;
+    std::size_t mask_ = 0;
+    std::uint32_t size_ = 0;
+};
+
+std::uint64_t CellKey(const Vec3f& p, const Vec3f& origin, double inv) {
+    const auto q = [&](int a) {
+        return static_cast<std::uint64_t>(static_cast<std::int64_t>(std::floor((p[a] - origin[a]) * inv))) & 0x1FFFFF;
+    };
+    return (q(0) << 42) | (q(1) << 21) | q(2);
+}
+
+Clustering VoxelLabels(std::span<const Vec3f> points, const Vec3f& origin, double cell) {
+    CellMap map(points.size());
+    Clustering c;
+    c.label.resize(points.size());
+    const double inv = 1.0 / cell;
+    for (std::size_t i = 0; i < points.size(); ++i) c.label[i] = map.Insert(CellKey(points[i], origin, inv));
+    c.count = map.size();
+    return c;
+}
+
+}  // namespace
+
+Clustering VoxelClustering(std::span<const Vec3f> points, const SimplifyOptions& options, ProgressTracker& progress) {
+    BoundingBox box;
+    for (const Vec3f& p : points) box.Extend(p);
+    const double diag = std::max(1e-30, static_cast<double>(box.Diagonal()));
+    // Cells are at least diag / 2^20 so that keys fit 21 bits per axis.
+    const double min_cell = diag / 1.0e6;
+    const std::size_t target = options.target;
+    if (target == 0) throw Error(ErrorCode::kInvalidArgument, "voxel simplification needs --target");
+    // Bisection on log(cell size) for the smallest count not below the target.
+    double lo = std::log(min_cell), hi = std::log(diag * 2.0);
+    Clustering best = VoxelLabels(points, box.min, min_cell);
+    for (int s = 0; s < 40; ++s) {
+        const double mid = 0.5 * (lo + hi);
+        Clustering c = VoxelLabels(points, box.min, std::exp(mid));
+        if (c.count >= target) {
+            lo = mid;
+            if (c.count < best.count) best = std::move(c);
+            if (best.count <= target + target / 400) break;
+        } else {
+            hi = mid;
+        }
+        progress.Advance(0.02);
+    }
+    best.count = Compact(best.label);
+    AdjustCount(points, best, target, false);
+    return best;
+}
+
+}  // namespace surfel::detail

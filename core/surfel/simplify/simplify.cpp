@@ -1,0 +1,223 @@
+#include "surfel/simplify/simplify.h"
+
+#include <algorithm>
+#include <cmath>
+#include <fstream>
+#include <string>
+
+#include "surfel/base/error.h"
+#include "surfel/simplify/simplify_internal.h"
+#include "surfel/spatial/kd_tree.h"
+#include "surfel/surface/local_analysis.h"
+
+namespace surfel {
+
+const char* SimplifyMethodName(SimplifyMethod method) {
+    switch (method) {
+        case SimplifyMethod::kHierarchical: return "hierarchical";
+        case SimplifyMethod::kIncremental: return "incremental";
+        case SimplifyMethod::kIterative: return "iterative";
+        case SimplifyMethod::kParticle: return "particle";
+        case SimplifyMethod::kVoxel: return "voxel";
+    }
+    return "?";
+}
+
+std::optional<SimplifyMethod> ParseSimplifyMethod(std::string_view name) {
+    for (SimplifyMethod m : {SimplifyMethod::kHierarchical, SimplifyMethod::kIncremental, SimplifyMethod::kIterative,
+                             SimplifyMethod::kParticle, SimplifyMethod::kVoxel})
+        if (name == SimplifyMethodName(m)) return m;
+    return std::nullopt;
+}
+
+double PeakResidentMiB() {
+    std::ifstream status("/proc/self/status");
+    std::string line;
+    while (std::getline(status, line))
+        if (line.rfind("VmHWM:", 0) == 0) return std::stod(line.substr(6)) / 1024.0;  // kB
+    return 0.0;
+}
+
+PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> normals, const Clustering& clusters,
+                             std::span<const Vec3f> positions) {
+    const std::size_t n = input.size(), m = clusters.count;
+    SURFEL_CHECK(clusters.label.size() == n);
+    SURFEL_CHECK(positions.empty() || positions.size() == m);
+    PointCloud out;
+    std::vector<Vec3d> sum(m, Vec3d::Zero()), nsum(m, Vec3d::Zero());
+    std::vector<std::array<double, 4>> csum(input.has_colors() ? m : 0, {0, 0, 0, 0});
+    std::vector<std::uint32_t> count(m, 0);
+    for (std::size_t i = 0; i < n; ++i) {
+        const std::uint32_t c = clusters.label[i];
+        sum[c] += input.positions[i].cast<double>();
+        if (!normals.empty()) nsum[c] += normals[i].cast<double>();
+        if (input.has_colors())
+            for (int k = 0; k < 4; ++k) csum[c][k] += input.colors[i][k];
+        ++count[c];
+    }
+    out.positions.resize(m);
+    for (std::size_t c = 0; c < m; ++c)
+        out.positions[c] = positions.empty() ? Vec3f((sum[c] / std::max(1u, count[c])).cast<float>()) : positions[c];
+
+    // The nearest input point stands in for clusters without members (particles can end up
+    // with none) and for normals that cancel out.
+    std::unique_ptr<KdTree> input_tree;
+    auto nearest_input = [&](const Vec3f& p) {
+        if (!input_tree) input_tree = std::make_unique<KdTree>(input.positions);
+        return input_tree->Nearest(p).index;
+    };
+
+    if (!normals.empty()) {
+        out.normals.resize(m);
+        for (std::size_t c = 0; c < m; ++c) {
+            const double len = nsum[c].norm();
+            out.normals[c] = len > 1e-6 * count[c] && count[c] > 0 ? Vec3f((nsum[c] / len).cast<float>())
+                                                                    : normals[nearest_input(out.positions[c])];
+        }
+    } else if (m >= 3) {
+        const KdTree out_tree(out.positions);
+        NormalOptions no;
+        no.k = std::min<int>(16, static_cast<int>(m) - 1);
+        no.orient_k = std::min<int>(10, static_cast<int>(m) - 1);
+        out.normals = EstimateNormals(out_tree, no).normals;
+    } else {
+        out.normals.assign(m, Vec3f::UnitZ());
+    }
+
+    if (input.has_colors()) {
+        out.colors.resize(m);
+        out.color_type = input.color_type;
+        out.color_has_alpha = input.color_has_alpha;
+        for (std::size_t c = 0; c < m; ++c) {
+            if (count[c] == 0) {
+                out.colors[c] = input.colors[nearest_input(out.positions[c])];
+                continue;
+            }
+            for (int k = 0; k < 4; ++k) out.colors[c][k] = static_cast<float>(csum[c][k] / count[c]);
+        }
+    }
+
+    // Splat radius: covers every member (3D distance, so also within the splat's plane), and
+    // reaches at least the nearest other representative so neighbouring splats overlap.
+    std::vector<float> cover(m, 0.0f);
+    for (std::size_t i = 0; i < n; ++i) {
+        const std::uint32_t c = clusters.label[i];
+        const Vec3f d = input.positions[i] - out.positions[c];
+        cover[c] = std::max(cover[c], d.norm());
+    }
+    out.radii.resize(m);
+    if (m >= 2) {
+        const KdTree out_tree(out.positions);
+        const KnnTable nn = out_tree.KnnAll(1);
+        for (std::size_t c = 0; c < m; ++c) out.radii[c] = std::max(cover[c], std::sqrt(nn.Dist2(c)[0]));
+    } else {
+        out.radii = cover;
+    }
+    return out;
+}
+
+SimplifyResult Simplify(const PointCloud& input, const SimplifyOptions& options, const ProgressFn& progress) {
+    const std::string method = SimplifyMethodName(options.method);
+    const std::size_t n = input.size();
+    if (n == 0) throw Error(ErrorCode::kInvalidArgument, "simplify: the input cloud has no points");
+    if (options.target > n)
+        throw Error(ErrorCode::kInvalidArgument, "simplify: target " + std::to_string(options.target) +
+                                                     " is larger than the input (" + std::to_string(n) + " points)");
+    if (options.error < 0 || !std::isfinite(options.error))
+        throw Error(ErrorCode::kInvalidArgument, "simplify: the error bound must be a finite number >= 0");
+    if (options.target > 0 && options.error > 0)
+        throw Error(ErrorCode::kInvalidArgument, "simplify: give either a target count or an error bound, not both");
+    const bool has_error_bound = options.method == SimplifyMethod::kIterative ||
+                                 options.method == SimplifyMethod::kHierarchical;
+    if (options.error > 0 && !has_error_bound)
+        throw Error(ErrorCode::kInvalidArgument,
+                    "simplify: method '" + method + "' takes no error bound; use a target count "
+                    "(error bounds: hierarchical, iterative)");
+    const bool has_own_bound = options.method == SimplifyMethod::kHierarchical ||
+                               options.method == SimplifyMethod::kIncremental;
+    if (options.target == 0 && options.error <= 0 && !has_own_bound)
+        throw Error(ErrorCode::kInvalidArgument, "simplify: method '" + method + "' needs a target count");
+    if (options.max_variation <= 0 || options.max_variation > 1.0 / 3.0)
+        throw Error(ErrorCode::kInvalidArgument, "simplify: max variation must lie in (0, 1/3]");
+    if (options.neighbors < 1 || options.neighbors > 64)
+        throw Error(ErrorCode::kInvalidArgument, "simplify: neighbours must lie in [1, 64]");
+    if (options.method == SimplifyMethod::kParticle && n < 8)
+        throw Error(ErrorCode::kInvalidArgument, "simplify: particle simulation needs at least 8 input points");
+
+    SimplifyResult result;
+    SimplifyReport& report = result.report;
+    report.method = method;
+    report.adaptive = options.adaptive;
+    report.input_points = n;
+
+    const bool needs_input_normals = options.method == SimplifyMethod::kIterative ||
+                                     options.method == SimplifyMethod::kParticle;
+    ProgressTracker tracker(progress, 1.0, std::string(method) + " simplification");
+    const Stopwatch clock;
+
+    std::vector<Vec3f> normals = input.normals;
+    std::vector<float> variation;
+    if ((needs_input_normals && normals.empty()) ||
+        (options.method == SimplifyMethod::kParticle && options.adaptive)) {
+        const KdTree tree(input.positions);
+        NormalOptions no;
+        no.k = std::min<int>(16, static_cast<int>(n) - 1);
+        no.orient_k = std::min<int>(10, static_cast<int>(n) - 1);
+        no.orient = normals.empty();
+        NormalResult nr = EstimateNormals(tree, no);
+        if (normals.empty()) {
+            normals = std::move(nr.normals);
+            report.normals_estimated = true;
+        }
+        variation = std::move(nr.surface_variation);
+    }
+    tracker.Check();
+
+    Clustering clusters;
+    std::vector<Vec3f> positions, particle_normals;
+    switch (options.method) {
+        case SimplifyMethod::kHierarchical:
+            clusters = detail::HierarchicalClustering(input.positions, options, tracker);
+            break;
+        case SimplifyMethod::kIncremental:
+            clusters = detail::IncrementalClustering(input.positions, options, tracker);
+            break;
+        case SimplifyMethod::kVoxel:
+            clusters = detail::VoxelClustering(input.positions, options, tracker);
+            break;
+        case SimplifyMethod::kIterative:
+            clusters = detail::IterativeSimplification(input.positions, normals, options, positions, tracker);
+            break;
+        case SimplifyMethod::kParticle: {
+            detail::ParticleSimulation(input, normals, variation, options, positions, particle_normals, tracker);
+            // Clusters for the attributes: each original point belongs to its closest particle.
+            const KdTree ptree(positions);
+            clusters.label.resize(n);
+            for (std::size_t i = 0; i < n; ++i) clusters.label[i] = ptree.Nearest(input.positions[i]).index;
+            clusters.count = positions.size();
+            break;
+        }
+    }
+    tracker.Check();
+    result.cloud = BuildFromClusters(input, normals, clusters, positions);
+    if (!particle_normals.empty()) {
+        result.cloud.normals = particle_normals;  // the MLS normals at the projected positions
+        // Radii were measured in the planes of the member-averaged normals; close enough, and
+        // the nearest-neighbour floor still holds.
+    }
+    report.time_ms = clock.ElapsedMs();
+    report.output_points = result.cloud.size();
+    report.peak_rss_mb = PeakResidentMiB();
+
+    if (options.measure_error && result.cloud.size() >= 8) {
+        const Stopwatch error_clock;
+        SurfaceErrorOptions eo;
+        eo.max_samples = options.error_samples;
+        eo.seed = options.seed;
+        report.error = MeasureSurfaceError(input, result.cloud, eo);
+        report.error_time_ms = error_clock.ElapsedMs();
+    }
+    return result;
+}
+
+}  // namespace surfel

@@ -1,0 +1,91 @@
+#pragma once
+// Internal pieces shared by the simplification methods (not installed, not public API).
+
+#include <Eigen/Core>
+#include <Eigen/Eigenvalues>
+#include <cstdint>
+#include <random>
+#include <span>
+#include <vector>
+
+#include "surfel/base/progress.h"
+#include "surfel/simplify/simplify.h"
+
+namespace surfel::detail {
+
+/// Running first and second moments of a point set, in double precision.
+struct Moments {
+    double n = 0.0;
+    Eigen::Vector3d sum = Eigen::Vector3d::Zero();
+    Eigen::Matrix3d outer = Eigen::Matrix3d::Zero();
+
+    void Add(const Vec3f& p) {
+        const Eigen::Vector3d d = p.cast<double>();
+        n += 1.0;
+        sum += d;
+        outer.noalias() += d * d.transpose();
+    }
+    void Add(const Moments& o) {
+        n += o.n;
+        sum += o.sum;
+        outer += o.outer;
+    }
+    Eigen::Vector3d Centroid() const { return n > 0 ? Eigen::Vector3d(sum / n) : Eigen::Vector3d::Zero(); }
+    Eigen::Matrix3d Covariance() const {
+        if (n <= 0) return Eigen::Matrix3d::Zero();
+        const Eigen::Vector3d c = Centroid();
+        Eigen::Matrix3d cov = outer / n - c * c.transpose();
+        return 0.5 * (cov + cov.transpose());
+    }
+};
+
+/// Eigen analysis of a covariance: eigenvalues ascending, v0 (normal) and v2 (largest variance).
+struct Spread {
+    Eigen::Vector3d eigenvalues = Eigen::Vector3d::Zero();
+    Eigen::Vector3d v0 = Eigen::Vector3d::UnitZ();
+    Eigen::Vector3d v2 = Eigen::Vector3d::UnitX();
+    double Variation() const {
+        const double s = eigenvalues.sum();
+        return s > 0 ? std::max(0.0, eigenvalues[0]) / s : 0.0;
+    }
+};
+Spread Analyze(const Moments& m);
+
+/// Portable uniform numbers from mt19937_64 (whose output sequence the standard fixes).
+class Random {
+public:
+    explicit Random(std::uint64_t seed) : engine_(seed) {}
+    double Uniform() { return static_cast<double>(engine_() >> 11) * (1.0 / 9007199254740992.0); }
+    std::size_t Index(std::size_t n) { return static_cast<std::size_t>(Uniform() * static_cast<double>(n)) % n; }
+
+private:
+    std::mt19937_64 engine_;
+};
+
+/// Relabels `label` to 0..count-1 in order of first appearance of each cluster's smallest member
+/// index (deterministic), returns count.
+std::size_t Compact(std::vector<std::uint32_t>& label);
+
+/// Brings a clustering to exactly `target` clusters: with too many, the clusters with the
+/// smallest `weight` (size, or size x variation) are dissolved and their points go to the nearest
+/// surviving centroid (the stray redistribution of notes 2.1.1); with too few, the largest are
+/// split at their centroid across the axis of largest variance (2.1.2).
+void AdjustCount(std::span<const Vec3f> points, Clustering& clusters, std::size_t target, bool adaptive);
+
+Clustering HierarchicalClustering(std::span<const Vec3f> points, const SimplifyOptions& options,
+                                  ProgressTracker& progress);
+Clustering IncrementalClustering(std::span<const Vec3f> points, const SimplifyOptions& options,
+                                 ProgressTracker& progress);
+Clustering VoxelClustering(std::span<const Vec3f> points, const SimplifyOptions& options, ProgressTracker& progress);
+
+/// Iterative point-pair contraction: fills `positions` (one per cluster) and returns the clusters.
+Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<const Vec3f> normals,
+                                   const SimplifyOptions& options, std::vector<Vec3f>& positions,
+                                   ProgressTracker& progress);
+
+/// Particle simulation: returns particle positions and normals (MLS-projected at the end).
+void ParticleSimulation(const PointCloud& input, std::span<const Vec3f> normals,
+                        std::span<const float> variation, const SimplifyOptions& options,
+                        std::vector<Vec3f>& positions, std::vector<Vec3f>& out_normals, ProgressTracker& progress);
+
+}  // namespace surfel::detail

@@ -1,0 +1,258 @@
+#include <gtest/gtest.h>
+#include <tbb/global_control.h>
+
+#include <cmath>
+
+#include "surfel/base/error.h"
+#include "surfel/base/shapes.h"
+#include "surfel/simplify/simplify.h"
+#include "surfel/spatial/kd_tree.h"
+
+namespace surfel {
+namespace {
+
+const std::vector<SimplifyMethod> kAllMethods = {SimplifyMethod::kHierarchical, SimplifyMethod::kIncremental,
+                                                 SimplifyMethod::kIterative, SimplifyMethod::kParticle,
+                                                 SimplifyMethod::kVoxel};
+
+PointCloud Sphere(std::size_t n, bool normals = false) {
+    ShapeOptions o;
+    o.points = n;
+    o.normals = normals;
+    return SampleShape(Shape::kSphere, o);
+}
+
+SimplifyResult RunSimplify(const PointCloud& c, SimplifyMethod m, std::size_t target, bool adaptive = false) {
+    SimplifyOptions o;
+    o.method = m;
+    o.target = target;
+    o.adaptive = adaptive;
+    o.measure_error = false;
+    return Simplify(c, o);
+}
+
+class EveryMethod : public ::testing::TestWithParam<SimplifyMethod> {};
+
+TEST_P(EveryMethod, SphereExactCountOnTheSurfaceWithOutwardNormalsAndCoveringSplats) {
+    const PointCloud c = Sphere(20000);  // no normals: each method estimates what it needs
+    const SimplifyResult r = RunSimplify(c, GetParam(), 1500);
+    const PointCloud& s = r.cloud;
+    ASSERT_EQ(s.size(), 1500u);
+    ASSERT_EQ(s.normals.size(), s.size());
+    ASSERT_EQ(s.radii.size(), s.size());
+    float max_radius = 0;
+    for (std::size_t i = 0; i < s.size(); ++i) {
+        const Vec3d p = s.positions[i].cast<double>();
+        EXPECT_NEAR(p.norm(), 1.0, 0.005) << "point " << i;  // within 0.5 % of r
+        EXPECT_GT(s.normals[i].dot(p.normalized().cast<float>()), 0.95f) << "point " << i;
+        EXPECT_GT(s.radii[i], 0.0f);
+        max_radius = std::max(max_radius, s.radii[i]);
+    }
+    // Splats cover the input: every original point lies within the radius of some output point.
+    const KdTree tree(s.positions);
+    std::vector<Neighbor> near;
+    std::size_t uncovered = 0;
+    for (const Vec3f& p : c.positions) {
+        tree.Radius(p, max_radius, &near);
+        bool covered = false;
+        for (const Neighbor& nb : near) covered |= std::sqrt(nb.dist2) <= s.radii[nb.index] * 1.0001f;
+        uncovered += !covered;
+    }
+    EXPECT_EQ(uncovered, 0u);
+    // The report.
+    EXPECT_EQ(r.report.input_points, 20000u);
+    EXPECT_EQ(r.report.output_points, 1500u);
+    EXPECT_EQ(r.report.method, SimplifyMethodName(GetParam()));
+}
+
+TEST_P(EveryMethod, SameOutputWhateverTheThreadCount) {
+    const PointCloud c = Sphere(8000);
+    SimplifyResult one, many;
+    {
+        tbb::global_control limit(tbb::global_control::max_allowed_parallelism, 1);
+        one = RunSimplify(c, GetParam(), 700);
+    }
+    {
+        tbb::global_control limit(tbb::global_control::max_allowed_parallelism, 4);
+        many = RunSimplify(c, GetParam(), 700);
+    }
+    ASSERT_EQ(one.cloud.size(), many.cloud.size());
+    for (std::size_t i = 0; i < one.cloud.size(); ++i) {
+        ASSERT_EQ(one.cloud.positions[i], many.cloud.positions[i]) << "point " << i;
+        ASSERT_EQ(one.cloud.normals[i], many.cloud.normals[i]) << "point " << i;
+        ASSERT_EQ(one.cloud.radii[i], many.cloud.radii[i]) << "point " << i;
+    }
+}
+
+TEST_P(EveryMethod, ColoursAreAveraged) {
+    PointCloud c = Sphere(10000);
+    c.colors.resize(c.size());
+    for (std::size_t i = 0; i < c.size(); ++i)
+        c.colors[i] = c.positions[i].z() > 0 ? std::array<float, 4>{1, 0, 0, 1} : std::array<float, 4>{0, 0, 1, 1};
+    const SimplifyResult r = RunSimplify(c, GetParam(), 800);
+    ASSERT_EQ(r.cloud.colors.size(), 800u);
+    for (std::size_t i = 0; i < r.cloud.size(); ++i) {
+        const auto& col = r.cloud.colors[i];
+        EXPECT_NEAR(col[0] + col[2], 1.0f, 1e-5f);  // a blend of the two, never anything else
+        if (r.cloud.positions[i].z() > 0.3f) EXPECT_NEAR(col[0], 1.0f, 1e-5f) << "point " << i;
+        if (r.cloud.positions[i].z() < -0.3f) EXPECT_NEAR(col[2], 1.0f, 1e-5f) << "point " << i;
+    }
+}
+
+TEST_P(EveryMethod, KeepsGivenNormalOrientation) {
+    PointCloud c = Sphere(6000, true);
+    for (auto& n : c.normals) n = -n;  // inward: the output must follow the input, not guess
+    const SimplifyResult r = RunSimplify(c, GetParam(), 500);
+    for (std::size_t i = 0; i < r.cloud.size(); ++i)
+        EXPECT_LT(r.cloud.normals[i].dot(r.cloud.positions[i].normalized()), -0.95f) << "point " << i;
+    EXPECT_FALSE(r.report.normals_estimated);
+}
+
+INSTANTIATE_TEST_SUITE_P(Simplify, EveryMethod, ::testing::ValuesIn(kAllMethods),
+                         [](const auto& p) { return std::string(SimplifyMethodName(p.param)); });
+
+// Fraction of points within `band` of one of the cube's 12 edges.
+double NearCrease(const PointCloud& c, double band) {
+    std::size_t near = 0;
+    for (const Vec3f& p : c.positions) {
+        int close = 0;
+        for (int a = 0; a < 3; ++a) close += std::abs(std::abs(p[a]) - 1.0f) < band;
+        near += close >= 2;
+    }
+    return static_cast<double>(near) / static_cast<double>(c.size());
+}
+
+class AdaptiveMethod : public ::testing::TestWithParam<SimplifyMethod> {};
+
+TEST_P(AdaptiveMethod, PutsMorePointsAtSharpCreases) {
+    ShapeOptions o;
+    o.points = 30000;
+    const PointCloud box = SampleShape(Shape::kBox, o);
+    const PointCloud uniform = RunSimplify(box, GetParam(), 1500, false).cloud;
+    const PointCloud adaptive = RunSimplify(box, GetParam(), 1500, true).cloud;
+    ASSERT_EQ(adaptive.size(), 1500u);
+    const double fu = NearCrease(uniform, 0.1), fa = NearCrease(adaptive, 0.1);
+    EXPECT_GT(fa, 1.2 * fu) << "uniform " << fu << ", adaptive " << fa;
+}
+
+INSTANTIATE_TEST_SUITE_P(Simplify, AdaptiveMethod,
+                         ::testing::Values(SimplifyMethod::kHierarchical, SimplifyMethod::kIncremental,
+                                           SimplifyMethod::kParticle),
+                         [](const auto& p) { return std::string(SimplifyMethodName(p.param)); });
+
+TEST(Simplify, IterativeIsCurvatureAdaptiveByItsQuadrics) {
+    ShapeOptions o;
+    o.points = 30000;
+    const PointCloud box = SampleShape(Shape::kBox, o);
+    const PointCloud voxel = RunSimplify(box, SimplifyMethod::kVoxel, 1500).cloud;
+    const PointCloud iterative = RunSimplify(box, SimplifyMethod::kIterative, 1500).cloud;
+    EXPECT_GT(NearCrease(iterative, 0.1), 1.2 * NearCrease(voxel, 0.1));
+}
+
+TEST(Simplify, HierarchicalErrorBoundKeepsClustersFlat) {
+    const PointCloud c = Sphere(20000);
+    std::size_t last = 0;
+    for (double bound : {0.004, 0.001}) {
+        SimplifyOptions o;
+        o.method = SimplifyMethod::kHierarchical;
+        o.error = bound;
+        o.max_cluster_size = 1000000;  // only the error bound splits
+        o.measure_error = false;
+        const SimplifyResult r = Simplify(c, o);
+        EXPECT_GT(r.cloud.size(), last);  // a tighter bound needs more points
+        last = r.cloud.size();
+        // A centroid of points within `bound` of their plane on the unit sphere lies within
+        // about `bound` of the sphere (the cluster is a curved patch, not a cap: allow 1.5x).
+        for (const Vec3f& p : r.cloud.positions) EXPECT_NEAR(p.norm(), 1.0, bound * 1.5);
+    }
+    EXPECT_LT(last, 20000u);
+}
+
+TEST(Simplify, IterativeErrorBound) {
+    const PointCloud c = Sphere(10000);
+    SimplifyOptions o;
+    o.method = SimplifyMethod::kIterative;
+    o.error = 0.002;
+    o.measure_error = false;
+    const SimplifyResult r = Simplify(c, o);
+    EXPECT_LT(r.cloud.size(), 5000u);  // it contracted a lot
+    EXPECT_GT(r.cloud.size(), 10u);    // but stopped at the bound
+    for (const Vec3f& p : r.cloud.positions) EXPECT_NEAR(p.norm(), 1.0, 3 * o.error);  // tangent planes lie outside: the optimum too
+}
+
+TEST(Simplify, RecursiveClusteringHonoursMaxSize) {
+    const PointCloud c = Sphere(10000);
+    for (SimplifyMethod m : {SimplifyMethod::kHierarchical, SimplifyMethod::kIncremental}) {
+        SimplifyOptions o;
+        o.method = m;
+        o.max_cluster_size = 20;
+        o.measure_error = false;
+        const SimplifyResult r = Simplify(c, o);
+        // Hierarchical leaves hold <= 20 points; incremental redistributes strays, so its
+        // clusters may grow beyond n_max but never by more than a factor 2 on average.
+        EXPECT_GE(r.cloud.size(), m == SimplifyMethod::kHierarchical ? 500u : 250u) << SimplifyMethodName(m);
+        EXPECT_LT(r.cloud.size(), 2000u) << SimplifyMethodName(m);
+    }
+}
+
+TEST(Simplify, QualityReportMeasuresTheSurfaceError) {
+    const PointCloud c = Sphere(20000);
+    SimplifyOptions o;
+    o.method = SimplifyMethod::kHierarchical;
+    o.target = 2000;
+    o.error_samples = 3000;
+    const SimplifyResult r = Simplify(c, o);
+    ASSERT_TRUE(r.report.error.has_value());
+    EXPECT_EQ(r.report.error->samples, 3000u);
+    EXPECT_GT(r.report.error->avg, 0.0);
+    EXPECT_LT(r.report.error->max, 0.005);  // the simplified sphere is still the unit sphere
+    EXPECT_NEAR(r.report.error->diagonal, 2.0 * std::sqrt(3.0), 0.01);
+    EXPECT_GT(r.report.time_ms, 0.0);
+    EXPECT_GT(r.report.peak_rss_mb, 0.0);
+}
+
+TEST(Simplify, RejectsImpossibleRequests) {
+    const PointCloud c = Sphere(100);
+    auto code = [&](SimplifyOptions o) {
+        try {
+            Simplify(c, o);
+        } catch (const Error& e) {
+            return e.code();
+        }
+        return ErrorCode::kInternal;
+    };
+    SimplifyOptions o;
+    o.target = 101;
+    EXPECT_EQ(code(o), ErrorCode::kInvalidArgument);
+    o.target = 50;
+    o.error = 0.1;
+    EXPECT_EQ(code(o), ErrorCode::kInvalidArgument);
+    o.target = 0;
+    o.method = SimplifyMethod::kVoxel;
+    EXPECT_EQ(code(o), ErrorCode::kInvalidArgument);  // no error bound for voxels
+    o.error = 0;
+    o.method = SimplifyMethod::kParticle;
+    EXPECT_EQ(code(o), ErrorCode::kInvalidArgument);  // particles need a count
+    EXPECT_THROW(Simplify(PointCloud{}, SimplifyOptions{}), Error);
+}
+
+TEST(Simplify, CanBeCancelled) {
+    const PointCloud c = Sphere(20000);
+    SimplifyOptions o;
+    o.method = SimplifyMethod::kIterative;
+    o.target = 100;
+    try {
+        Simplify(c, o, [](double) { return false; });
+        FAIL() << "not cancelled";
+    } catch (const Error& e) {
+        EXPECT_EQ(e.code(), ErrorCode::kCancelled);
+    }
+}
+
+TEST(Simplify, MethodNamesRoundTrip) {
+    for (SimplifyMethod m : kAllMethods) EXPECT_EQ(ParseSimplifyMethod(SimplifyMethodName(m)), m);
+    EXPECT_FALSE(ParseSimplifyMethod("qslim"));
+}
+
+}  // namespace
+}  // namespace surfel
