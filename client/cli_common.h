@@ -9,7 +9,6 @@
 
 #include "surfel/base/point_cloud.h"
 #include "surfel/base/progress.h"
-#include "surfel/simplify/simplify.h"
 
 namespace surfel::cli {
 
@@ -46,13 +45,11 @@ PointCloud LoadCloud(const std::string& path);
 /// Writes a point-cloud file (PLY or XYZ by extension; binary PLY unless ascii).
 void SaveCloud(const PointCloud& cloud, const std::string& path, bool ascii = false);
 
-/// The JSON report of a simplification (also the service's result metadata).
-nlohmann::json SimplifyReportJson(const SimplifyReport& report, const std::string& output = {});
-
 /// Each module of the CLI registers its subcommands here.
 void RegisterIoCommands(CLI::App& app);
 void RegisterSurfaceCommands(CLI::App& app);
 void RegisterRenderCommands(CLI::App& app);
 void RegisterSimplifyCommands(CLI::App& app);
+void RegisterServiceCommands(CLI::App& app);
 
 }  // namespace surfel::cli

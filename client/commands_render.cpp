@@ -2,6 +2,7 @@
 #include <sstream>
 
 #include "cli_common.h"
+#include "job_exec.h"
 #include "surfel/base/error.h"
 #include "surfel/io/image.h"
 #include "surfel/render/renderer.h"
@@ -56,36 +57,56 @@ struct RenderArgs {
     double fovy = 40;
     std::vector<std::string> lights;
     bool no_shadows = false, half = false;
-    RenderOptions opt;
+    int spp = 1, degree = 2, max_iterations = 20;
+    float h = 0, precision = 0;
     CommonFlags flags;
+    JobFlags job;
 };
 
+v1::Vec3 ToProto(const Vec3d& v) {
+    v1::Vec3 p;
+    p.set_x(v.x());
+    p.set_y(v.y());
+    p.set_z(v.z());
+    return p;
+}
+
 void RunRender(RenderArgs& a) {
-    const PointCloud cloud = LoadCloud(a.input);
-    if (cloud.empty()) throw Error(ErrorCode::kInvalidArgument, a.input + ": the cloud has no points");
-    Camera cam = Camera::Framing(cloud.Bounds(), a.width, a.height, ParseVec3(a.view, "--view"), a.fovy);
-    if (!a.eye.empty()) cam.eye = ParseVec3(a.eye, "--eye");
-    if (!a.target.empty()) cam.target = ParseVec3(a.target, "--target");
-    if (!a.up.empty()) cam.up = ParseVec3(a.up, "--up");
-    a.opt.camera = cam;
-    for (const auto& l : a.lights) a.opt.lights.push_back(ParseLight(l));
-    a.opt.shadows = !a.no_shadows;
-    a.opt.background = ParseVec3(a.background, "--background");
-    ImageFormatFromPath(a.output);  // reject a bad extension before the work
+    const ImageFormat format = ImageFormatFromPath(a.output);  // reject a bad extension before the work
     if (!a.png.empty()) ImageFormatFromPath(a.png);
-    const RenderResult r = Render(cloud, a.opt, MakeProgressBar("render", a.flags));
-    ImageWriteOptions w;
-    w.half = a.half;
-    WriteImage(r.image, a.output, w);
-    if (!a.png.empty()) WriteImage(r.image, a.png);
-    const RenderStats& s = r.stats;
-    PrintReport({{"points", cloud.size()}, {"output", a.output}, {"width", a.width}, {"height", a.height},
-                 {"rays", s.primary_rays}, {"shadow_rays", s.shadow_rays}, {"hits", s.hits},
-                 {"average_iterations", s.AverageIterations()}, {"evaluations", s.surface.evaluations},
-                 {"cache_hits", s.surface.cache_hits}, {"h", s.h}, {"precision", s.precision},
-                 {"rays_per_second", s.time_ms > 0 ? 1000.0 * double(s.primary_rays + s.shadow_rays) / s.time_ms : 0.0},
-                 {"time_ms", s.time_ms}},
-                a.flags);
+    v1::JobSpec spec;
+    v1::RenderJob& r = *spec.mutable_render();
+    r.set_width(a.width);
+    r.set_height(a.height);
+    *r.mutable_view() = ToProto(ParseVec3(a.view, "--view"));
+    v1::Camera& cam = *r.mutable_camera();
+    cam.set_fovy_deg(a.fovy);
+    if (!a.eye.empty()) *cam.mutable_eye() = ToProto(ParseVec3(a.eye, "--eye"));
+    if (!a.target.empty()) *cam.mutable_target() = ToProto(ParseVec3(a.target, "--target"));
+    if (!a.up.empty()) *cam.mutable_up() = ToProto(ParseVec3(a.up, "--up"));
+    for (const auto& text : a.lights) {
+        const Light L = ParseLight(text);
+        v1::Light& l = *r.add_lights();
+        l.set_kind(L.kind == Light::Kind::kPoint ? v1::Light::POINT : v1::Light::DIRECTIONAL);
+        *l.mutable_vector() = ToProto(L.vector);
+        l.set_intensity(L.intensity);
+    }
+    r.set_no_shadows(a.no_shadows);
+    r.set_samples_per_pixel(a.spp);
+    *r.mutable_background() = ToProto(ParseVec3(a.background, "--background"));
+    r.set_h(a.h);
+    r.set_precision(a.precision);
+    r.set_degree(a.degree);
+    r.set_max_iterations(a.max_iterations);
+    r.set_format(format == ImageFormat::kPng ? v1::RenderJob::PNG
+                 : a.half                    ? v1::RenderJob::EXR_HALF
+                                             : v1::RenderJob::EXR);
+    nlohmann::json report = ExecuteJob(spec, a.input, a.output, a.flags, a.job, "render");
+    if (!a.png.empty() && report.contains("output")) {  // the preview, from the written image
+        WriteImage(ReadImage(a.output), a.png);
+        report["png"] = a.png;
+    }
+    PrintReport(report, a.flags);
 }
 
 }  // namespace
@@ -105,15 +126,16 @@ void RegisterRenderCommands(CLI::App& app) {
     sub->add_option("--fovy", a->fovy, "Vertical field of view in degrees")->default_val(40.0)->check(CLI::Range(1.0, 179.0));
     sub->add_option("--light", a->lights, "dir:x,y,z[:intensity] (direction the light travels) or point:x,y,z[:intensity]; repeatable");
     sub->add_flag("--no-shadows", a->no_shadows, "Skip shadow rays");
-    sub->add_option("--spp", a->opt.samples_per_pixel, "Stratified samples per pixel")->default_val(1)->check(CLI::Range(1, 1024));
+    sub->add_option("--spp", a->spp, "Stratified samples per pixel")->default_val(1)->check(CLI::Range(1, 1024));
     sub->add_option("--background", a->background, "Background colour r,g,b (linear)")->default_val("0,0,0");
-    sub->add_option("--h", a->opt.surface.h, "Gaussian scale h (0 = 2 x median sample spacing)")->default_val(0.0f)->check(CLI::NonNegativeNumber);
-    sub->add_option("--precision", a->opt.surface.precision, "Convergence |c| < precision (0 = 1e-3 h)")->default_val(0.0f)->check(CLI::NonNegativeNumber);
-    sub->add_option("--degree", a->opt.surface.degree, "Local polynomial degree")->default_val(2)->check(CLI::Range(0, 2));
-    sub->add_option("--max-iterations", a->opt.surface.max_iterations, "Iterations per ball")->default_val(20)->check(CLI::Range(1, 1000));
+    sub->add_option("--h", a->h, "Gaussian scale h (0 = 2 x median sample spacing)")->default_val(0.0f)->check(CLI::NonNegativeNumber);
+    sub->add_option("--precision", a->precision, "Convergence |c| < precision (0 = 1e-3 h)")->default_val(0.0f)->check(CLI::NonNegativeNumber);
+    sub->add_option("--degree", a->degree, "Local polynomial degree")->default_val(2)->check(CLI::Range(0, 2));
+    sub->add_option("--max-iterations", a->max_iterations, "Iterations per ball")->default_val(20)->check(CLI::Range(1, 1000));
     sub->add_flag("--half", a->half, "Write EXR channels as 16-bit half floats");
     AddCommonFlags(sub, &a->flags);
-    sub->footer("Example:\n  surfel render bunny.ply -o bunny.exr --png bunny.png --width 400 --height 200 \\\n"
+    AddJobFlags(sub, &a->job);
+    sub->footer("Runs in-process, or on a server with --server host:port (the cloud is uploaded once).\nExample:\n  surfel render bunny.ply -o bunny.exr --png bunny.png --width 400 --height 200 \\\n"
                 "      --light dir:-1,-1,-1 --spp 4 --json");
     sub->callback([a] { RunRender(*a); });
 }

@@ -1,4 +1,5 @@
-// surfel: the command-line tool. Every job is a subcommand that runs in-process.
+// surfel: the command-line tool. Every job is a subcommand that runs in-process or, with
+// --server host:port, on a surfel-server.
 #include <iostream>
 
 #include "cli_common.h"
@@ -13,11 +14,14 @@ int main(int argc, char** argv) {
     app.footer("Exit codes: 0 success, 2 usage error, 1 failure (the message is on stderr).\n"
                "Every job subcommand takes --json and then prints one JSON object with at least\n"
                "`points` and `time_ms` (the algorithm alone, file I/O excluded).\n"
+               "Jobs (render, simplify) run in-process, or on a surfel-server with --server host:port\n"
+               "(or SURFEL_SERVER=host:port); upload, jobs, job, cancel and download talk to a server.\n"
                "Run `surfel <command> --help` for a command's options and an example.");
     RegisterIoCommands(app);
     RegisterSurfaceCommands(app);
     RegisterRenderCommands(app);
     RegisterSimplifyCommands(app);
+    RegisterServiceCommands(app);
     try {
         app.parse(argc, argv);
     } catch (const CLI::ParseError& e) {

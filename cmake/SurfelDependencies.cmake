@@ -39,9 +39,13 @@ if(SURFEL_BUILD_BENCH)
 endif()
 
 # The service's dependencies (gRPC needs protobuf-compiler-grpc installed to configure).
-option(SURFEL_REQUIRE_SERVICE_DEPS "Check for gRPC, Protobuf and SQLiteCpp at configure time" ON)
+# OFF builds only the core (the fuzzer build does that).
+option(SURFEL_REQUIRE_SERVICE_DEPS "Build the service, worker and client (gRPC, Protobuf, SQLiteCpp, ...)" ON)
 if(SURFEL_REQUIRE_SERVICE_DEPS)
     surfel_require_package(Protobuf "libprotobuf-dev protobuf-compiler")
     surfel_require_package(gRPC "libgrpc++-dev protobuf-compiler-grpc" CONFIG)
     surfel_require_package(SQLiteCpp libsqlitecpp-dev CONFIG)
+    surfel_require_package(OpenSSL libssl-dev)
+    surfel_require_package(nlohmann_json nlohmann-json3-dev 3 CONFIG)
+    surfel_require_package(prometheus-cpp prometheus-cpp-dev CONFIG)
 endif()

@@ -9,6 +9,8 @@ std::string_view ErrorCodeName(ErrorCode code) {
         case ErrorCode::kResourceExhausted: return "ResourceExhausted";
         case ErrorCode::kCancelled: return "Cancelled";
         case ErrorCode::kDeadlineExceeded: return "DeadlineExceeded";
+        case ErrorCode::kUnavailable: return "Unavailable";
+        case ErrorCode::kFailedPrecondition: return "FailedPrecondition";
         case ErrorCode::kInternal: return "Internal";
     }
     return "Unknown";

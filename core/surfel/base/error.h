@@ -18,6 +18,8 @@ enum class ErrorCode {
     kResourceExhausted,  ///< A configured limit (points, bytes, queue) was exceeded.
     kCancelled,          ///< The progress hook asked to stop.
     kDeadlineExceeded,   ///< The work ran past its deadline.
+    kUnavailable,        ///< The service is shutting down or cannot take work now; retry later.
+    kFailedPrecondition, ///< The request does not fit the current state (a result before its job ended).
     kInternal,           ///< A bug: an invariant of the library did not hold.
 };
 

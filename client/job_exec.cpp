@@ -1,0 +1,87 @@
+#include "job_exec.h"
+
+#include "service_client.h"
+#include "surfel/base/error.h"
+#include "surfel/io/ply.h"
+#include "surfel/worker/job_runner.h"
+
+namespace surfel::cli {
+namespace {
+
+void SetCloudId(v1::JobSpec& spec, const std::string& id) {
+    if (spec.has_render()) spec.mutable_render()->set_cloud_id(id);
+    if (spec.has_simplify()) spec.mutable_simplify()->set_cloud_id(id);
+}
+
+client::ByteProgress Bytes(const ProgressFn& bar) {
+    if (!bar) return {};
+    return [bar](std::uint64_t done, std::uint64_t total) { bar(total ? double(done) / double(total) : 1.0); };
+}
+
+}  // namespace
+
+void AddJobFlags(CLI::App* sub, JobFlags* flags) {
+    sub->add_option("--server", flags->server, "Run on a surfel-server at host:port instead of in-process")
+        ->envname("SURFEL_SERVER");
+    sub->add_option("--timeout", flags->timeout_s, "Fail the job with DEADLINE_EXCEEDED after this many seconds")
+        ->check(CLI::NonNegativeNumber);
+    sub->add_flag("--detach", flags->detach, "With --server: submit, print the job id and return");
+}
+
+nlohmann::json ExecuteJob(v1::JobSpec spec, const std::string& input, const std::string& output,
+                          const CommonFlags& flags, const JobFlags& job_flags, const std::string& label) {
+    if (job_flags.timeout_s > 0) spec.set_timeout_ms(static_cast<std::int64_t>(job_flags.timeout_s * 1000));
+    // Options first, before any work: a bad value is a usage error.
+    SetCloudId(spec, "local");
+    try {
+        worker::ValidateSpec(spec);
+    } catch (const Error& e) {
+        throw UsageError(e.what());
+    }
+    if (job_flags.detach && job_flags.server.empty()) throw UsageError("--detach needs --server");
+
+    if (job_flags.server.empty()) {
+        const PointCloud cloud = LoadCloud(input);
+        const worker::JobOutput out =
+            worker::RunJob(spec, [&](const std::string&) { return cloud; }, MakeProgressBar(label, flags));
+        WriteFileBytes(output, out.bytes);
+        nlohmann::json report = out.report;
+        report["output"] = output;
+        return report;
+    }
+
+    client::ServiceClient client(job_flags.server);
+    const v1::Cloud cloud = client.UploadFile(input, Bytes(MakeProgressBar("upload", flags)));
+    SetCloudId(spec, cloud.id());
+    const v1::Job job = client.Submit(spec);
+    if (job_flags.detach)
+        return {{"job_id", job.id()}, {"state", v1::JobState_Name(job.state())}, {"reused", job.reused()},
+                {"cloud_id", cloud.id()}, {"server", job_flags.server}};
+    const ProgressFn bar = MakeProgressBar(label, flags);
+    const client::WatchOutcome done = client.Watch(
+        job.id(), /*include_result=*/true, /*cancel_on_disconnect=*/true,
+        [&](const std::string&, double f) {
+            if (bar) bar(f);
+        },
+        {}, Bytes(MakeProgressBar("download", flags)));
+    if (done.state != v1::SUCCEEDED) {
+        const ErrorCode code = done.status_code == grpc::StatusCode::CANCELLED           ? ErrorCode::kCancelled
+                               : done.status_code == grpc::StatusCode::DEADLINE_EXCEEDED ? ErrorCode::kDeadlineExceeded
+                               : done.status_code == grpc::StatusCode::INVALID_ARGUMENT  ? ErrorCode::kInvalidArgument
+                               : done.status_code == grpc::StatusCode::NOT_FOUND         ? ErrorCode::kNotFound
+                               : done.status_code == grpc::StatusCode::RESOURCE_EXHAUSTED
+                                   ? ErrorCode::kResourceExhausted
+                                   : ErrorCode::kInternal;
+        throw Error(code, "job " + job.id() + " " + v1::JobState_Name(done.state) + ": " + done.status_message);
+    }
+    WriteFileBytes(output, done.bytes);
+    nlohmann::json report = nlohmann::json::parse(done.result.report_json());
+    report["output"] = output;
+    report["job_id"] = job.id();
+    report["cloud_id"] = cloud.id();
+    report["reused"] = job.reused();
+    report["server"] = job_flags.server;
+    return report;
+}
+
+}  // namespace surfel::cli

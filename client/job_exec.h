@@ -1,0 +1,32 @@
+#pragma once
+/// \file
+/// One path for every job subcommand: run a surfel.v1.JobSpec in-process through the worker's
+/// RunJob (the embedded default), or through a server with --server host:port (upload if
+/// needed, submit, watch with progress, receive the result). Both write the result file and
+/// return the job's JSON report.
+
+#include <nlohmann/json.hpp>
+#include <string>
+
+#include "cli_common.h"
+#include "surfel/v1/surfel.pb.h"
+
+namespace surfel::cli {
+
+/// Options every job subcommand shares beyond --json/--quiet.
+struct JobFlags {
+    std::string server;     ///< host:port; empty = in-process
+    double timeout_s = 0;   ///< > 0: the job fails with DEADLINE_EXCEEDED past it
+    bool detach = false;    ///< --server only: submit and print the job id without waiting
+};
+
+/// Adds --server, --timeout and --detach.
+void AddJobFlags(CLI::App* sub, JobFlags* flags);
+
+/// Runs `spec` (whose cloud_id is filled in here) on the cloud in `input`, writes the result to
+/// `output` and returns the report (with "output", and "job_id"/"server" when remote).
+/// Invalid options throw UsageError; other failures surfel::Error or client::RpcError.
+nlohmann::json ExecuteJob(v1::JobSpec spec, const std::string& input, const std::string& output,
+                          const CommonFlags& flags, const JobFlags& job_flags, const std::string& label);
+
+}  // namespace surfel::cli

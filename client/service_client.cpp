@@ -1,0 +1,252 @@
+#include "service_client.h"
+
+#include <openssl/evp.h>
+
+#include <chrono>
+#include <filesystem>
+#include <fstream>
+
+namespace surfel::client {
+namespace {
+
+const char* CodeName(grpc::StatusCode code) {
+    switch (code) {
+        case grpc::StatusCode::OK: return "OK";
+        case grpc::StatusCode::CANCELLED: return "CANCELLED";
+        case grpc::StatusCode::UNKNOWN: return "UNKNOWN";
+        case grpc::StatusCode::INVALID_ARGUMENT: return "INVALID_ARGUMENT";
+        case grpc::StatusCode::DEADLINE_EXCEEDED: return "DEADLINE_EXCEEDED";
+        case grpc::StatusCode::NOT_FOUND: return "NOT_FOUND";
+        case grpc::StatusCode::ALREADY_EXISTS: return "ALREADY_EXISTS";
+        case grpc::StatusCode::PERMISSION_DENIED: return "PERMISSION_DENIED";
+        case grpc::StatusCode::RESOURCE_EXHAUSTED: return "RESOURCE_EXHAUSTED";
+        case grpc::StatusCode::FAILED_PRECONDITION: return "FAILED_PRECONDITION";
+        case grpc::StatusCode::ABORTED: return "ABORTED";
+        case grpc::StatusCode::OUT_OF_RANGE: return "OUT_OF_RANGE";
+        case grpc::StatusCode::UNIMPLEMENTED: return "UNIMPLEMENTED";
+        case grpc::StatusCode::INTERNAL: return "INTERNAL";
+        case grpc::StatusCode::UNAVAILABLE: return "UNAVAILABLE";
+        case grpc::StatusCode::DATA_LOSS: return "DATA_LOSS";
+        case grpc::StatusCode::UNAUTHENTICATED: return "UNAUTHENTICATED";
+        default: return "?";
+    }
+}
+
+void Check(const grpc::Status& status, const std::string& call) {
+    if (!status.ok()) throw RpcError(status, call);
+}
+
+std::string FileSha256(const std::string& path) {
+    std::ifstream in(path, std::ios::binary);
+    if (!in) throw std::runtime_error(path + ": cannot open");
+    EVP_MD_CTX* ctx = EVP_MD_CTX_new();
+    EVP_DigestInit_ex(ctx, EVP_sha256(), nullptr);
+    std::string buf(1 << 20, '\0');
+    while (in) {
+        in.read(buf.data(), static_cast<std::streamsize>(buf.size()));
+        EVP_DigestUpdate(ctx, buf.data(), static_cast<std::size_t>(in.gcount()));
+    }
+    unsigned char digest[EVP_MAX_MD_SIZE];
+    unsigned int len = 0;
+    EVP_DigestFinal_ex(ctx, digest, &len);
+    EVP_MD_CTX_free(ctx);
+    static const char* hex = "0123456789abcdef";
+    std::string out;
+    for (unsigned int i = 0; i < len; ++i) {
+        out += hex[digest[i] >> 4];
+        out += hex[digest[i] & 15];
+    }
+    return out;
+}
+
+}  // namespace
+
+RpcError::RpcError(const grpc::Status& status, const std::string& what)
+    : std::runtime_error(what + ": " + CodeName(status.error_code()) + ": " + status.error_message()), status_(status) {}
+
+ServiceClient::ServiceClient(const std::string& target, double timeout_s) : target_(target), timeout_s_(timeout_s) {
+    grpc::ChannelArguments args;
+    args.SetMaxReceiveMessageSize(16 << 20);
+    channel_ = grpc::CreateCustomChannel(target, grpc::InsecureChannelCredentials(), args);
+    stub_ = v1::Surfel::NewStub(channel_);
+}
+
+void ServiceClient::Prepare(grpc::ClientContext& ctx) const {
+    ctx.set_deadline(std::chrono::system_clock::now() +
+                     std::chrono::milliseconds(static_cast<std::int64_t>(timeout_s_ * 1000)));
+    ctx.set_wait_for_ready(false);
+}
+
+v1::Cloud ServiceClient::GetCloud(const std::string& id) {
+    grpc::ClientContext ctx;
+    Prepare(ctx);
+    v1::GetCloudRequest req;
+    req.set_cloud_id(id);
+    v1::Cloud c;
+    Check(stub_->GetCloud(&ctx, req, &c), "GetCloud");
+    return c;
+}
+
+v1::Cloud ServiceClient::UploadFile(const std::string& path, const ByteProgress& progress, std::size_t chunk) {
+    const std::uint64_t total = std::filesystem::file_size(path);
+    const std::string sha = FileSha256(path);
+    {  // already there: nothing to send
+        grpc::ClientContext ctx;
+        Prepare(ctx);
+        v1::GetCloudRequest req;
+        req.set_cloud_id(sha);
+        v1::Cloud c;
+        if (stub_->GetCloud(&ctx, req, &c).ok()) {
+            c.set_deduplicated(true);
+            if (progress) progress(total, total);
+            return c;
+        }
+    }
+    std::uint64_t offset = 0;
+    {
+        grpc::ClientContext ctx;
+        Prepare(ctx);
+        v1::QueryUploadRequest req;
+        req.set_upload_id(sha);
+        v1::QueryUploadResponse resp;
+        Check(stub_->QueryUpload(&ctx, req, &resp), "QueryUpload");
+        offset = static_cast<std::uint64_t>(resp.committed_size());
+        if (offset > total) offset = 0;  // a different file under this id cannot happen (same hash)
+    }
+    std::ifstream in(path, std::ios::binary);
+    in.seekg(static_cast<std::streamoff>(offset));
+    grpc::ClientContext ctx;  // no deadline: large files take their time
+    v1::Cloud cloud;
+    auto writer = stub_->Upload(&ctx, &cloud);
+    v1::UploadRequest req;
+    req.set_upload_id(sha);
+    req.set_filename(std::filesystem::path(path).filename().string());
+    std::string buf(chunk, '\0');
+    bool open = true;
+    do {
+        in.read(buf.data(), static_cast<std::streamsize>(buf.size()));
+        const auto n = static_cast<std::size_t>(in.gcount());
+        req.set_write_offset(static_cast<std::int64_t>(offset));
+        req.set_data(buf.data(), n);
+        offset += n;
+        req.set_finish_write(offset >= total);
+        if (!writer->Write(req)) {
+            open = false;
+            break;
+        }
+        req.clear_filename();
+        if (progress) progress(offset, total);
+    } while (offset < total);
+    if (open) writer->WritesDone();
+    Check(writer->Finish(), "Upload " + path);
+    return cloud;
+}
+
+v1::Job ServiceClient::Submit(const v1::JobSpec& spec) {
+    grpc::ClientContext ctx;
+    Prepare(ctx);
+    v1::SubmitRequest req;
+    *req.mutable_spec() = spec;
+    v1::Job job;
+    Check(stub_->Submit(&ctx, req, &job), "Submit");
+    return job;
+}
+
+WatchOutcome ServiceClient::Watch(const std::string& job_id, bool include_result, bool cancel_on_disconnect,
+                                  const std::function<void(const std::string&, double)>& on_running,
+                                  const std::function<void(std::uint32_t)>& on_queued, const ByteProgress& on_bytes) {
+    grpc::ClientContext ctx;
+    v1::WatchRequest req;
+    req.set_job_id(job_id);
+    req.set_include_result(include_result);
+    req.set_cancel_on_disconnect(cancel_on_disconnect);
+    auto reader = stub_->Watch(&ctx, req);
+    WatchOutcome out;
+    v1::JobEvent e;
+    while (reader->Read(&e)) {
+        switch (e.event_case()) {
+            case v1::JobEvent::kState: out.state = e.state().state(); break;
+            case v1::JobEvent::kQueued:
+                if (on_queued) on_queued(e.queued().position());
+                break;
+            case v1::JobEvent::kRunning:
+                out.state = v1::RUNNING;
+                if (on_running) on_running(e.running().stage(), e.running().fraction());
+                break;
+            case v1::JobEvent::kFinished:
+                out.state = v1::SUCCEEDED;
+                out.result = e.finished();
+                break;
+            case v1::JobEvent::kFailed:
+                out.state = e.failed().code() == grpc::StatusCode::CANCELLED ? v1::CANCELLED : v1::FAILED;
+                out.status_code = e.failed().code();
+                out.status_message = e.failed().message();
+                break;
+            case v1::JobEvent::kResultChunk:
+                out.bytes += e.result_chunk().data();
+                if (on_bytes) on_bytes(out.bytes.size(), static_cast<std::uint64_t>(e.result_chunk().total_size()));
+                break;
+            case v1::JobEvent::EVENT_NOT_SET: break;
+        }
+    }
+    Check(reader->Finish(), "Watch " + job_id);
+    return out;
+}
+
+std::string ServiceClient::Download(const std::string& job_id, const ByteProgress& progress) {
+    grpc::ClientContext ctx;
+    v1::DownloadRequest req;
+    req.set_job_id(job_id);
+    auto reader = stub_->Download(&ctx, req);
+    std::string bytes;
+    v1::DataChunk chunk;
+    while (reader->Read(&chunk)) {
+        bytes += chunk.data();
+        if (progress) progress(bytes.size(), static_cast<std::uint64_t>(chunk.total_size()));
+    }
+    Check(reader->Finish(), "Download " + job_id);
+    return bytes;
+}
+
+v1::Job ServiceClient::Cancel(const std::string& job_id) {
+    grpc::ClientContext ctx;
+    Prepare(ctx);
+    v1::CancelRequest req;
+    req.set_job_id(job_id);
+    v1::Job job;
+    Check(stub_->Cancel(&ctx, req, &job), "Cancel");
+    return job;
+}
+
+v1::Job ServiceClient::GetJob(const std::string& job_id) {
+    grpc::ClientContext ctx;
+    Prepare(ctx);
+    v1::GetJobRequest req;
+    req.set_job_id(job_id);
+    v1::Job job;
+    Check(stub_->GetJob(&ctx, req, &job), "GetJob");
+    return job;
+}
+
+std::vector<v1::Job> ServiceClient::ListJobs(std::uint32_t limit, v1::JobState state) {
+    grpc::ClientContext ctx;
+    Prepare(ctx);
+    v1::ListJobsRequest req;
+    req.set_limit(limit);
+    req.set_state(state);
+    v1::ListJobsResponse resp;
+    Check(stub_->ListJobs(&ctx, req, &resp), "ListJobs");
+    return {resp.jobs().begin(), resp.jobs().end()};
+}
+
+bool ServiceClient::DeleteCloud(const std::string& id) {
+    grpc::ClientContext ctx;
+    Prepare(ctx);
+    v1::DeleteCloudRequest req;
+    req.set_cloud_id(id);
+    v1::DeleteCloudResponse resp;
+    Check(stub_->DeleteCloud(&ctx, req, &resp), "DeleteCloud");
+    return resp.deleted();
+}
+
+}  // namespace surfel::client

@@ -1,0 +1,72 @@
+#pragma once
+/// \file
+/// Client library of the Surfel service: upload (resumable, skipped when the server already has
+/// the bytes), submit, watch with progress and the result's bytes, cancel, list.
+
+#include <grpcpp/grpcpp.h>
+
+#include <functional>
+#include <memory>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#include "surfel/v1/surfel.grpc.pb.h"
+
+namespace surfel::client {
+
+/// A failed RPC: the status as the server sent it.
+class RpcError : public std::runtime_error {
+public:
+    explicit RpcError(const grpc::Status& status, const std::string& what);
+    const grpc::Status& status() const { return status_; }
+
+private:
+    grpc::Status status_;
+};
+
+/// Called with bytes done and total (total 0 when unknown).
+using ByteProgress = std::function<void(std::uint64_t done, std::uint64_t total)>;
+
+/// What Watch saw: the final job and, when asked for, the result's bytes.
+struct WatchOutcome {
+    v1::JobState state = v1::JOB_STATE_UNSPECIFIED;
+    v1::JobResult result;   ///< SUCCEEDED
+    int status_code = 0;    ///< FAILED / CANCELLED: a grpc::StatusCode
+    std::string status_message;
+    std::string bytes;      ///< include_result
+};
+
+class ServiceClient {
+public:
+    /// `target` is host:port. Connects lazily; `timeout_s` bounds unary calls.
+    explicit ServiceClient(const std::string& target, double timeout_s = 30.0);
+
+    /// Uploads a file (chunks of `chunk` bytes). The upload id is the file's SHA-256, so a
+    /// broken upload resumes where the server's committed size ends, and a file the server
+    /// already has is not sent at all.
+    v1::Cloud UploadFile(const std::string& path, const ByteProgress& progress = {}, std::size_t chunk = 256 << 10);
+    v1::Cloud GetCloud(const std::string& id);
+    v1::Job Submit(const v1::JobSpec& spec);
+    /// Follows a job to its end. `on_running` gets (stage, fraction); `on_queued` the position.
+    WatchOutcome Watch(const std::string& job_id, bool include_result, bool cancel_on_disconnect,
+                       const std::function<void(const std::string&, double)>& on_running = {},
+                       const std::function<void(std::uint32_t)>& on_queued = {},
+                       const ByteProgress& on_bytes = {});
+    std::string Download(const std::string& job_id, const ByteProgress& progress = {});
+    v1::Job Cancel(const std::string& job_id);
+    v1::Job GetJob(const std::string& job_id);
+    std::vector<v1::Job> ListJobs(std::uint32_t limit = 100, v1::JobState state = v1::JOB_STATE_UNSPECIFIED);
+    bool DeleteCloud(const std::string& id);
+
+    const std::string& target() const { return target_; }
+
+private:
+    void Prepare(grpc::ClientContext& ctx) const;
+    std::string target_;
+    double timeout_s_;
+    std::shared_ptr<grpc::Channel> channel_;
+    std::unique_ptr<v1::Surfel::Stub> stub_;
+};
+
+}  // namespace surfel::client

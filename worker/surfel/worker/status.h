@@ -1,0 +1,25 @@
+#pragma once
+/// \file
+/// The one mapping from the core's errors to gRPC status codes, used by every handler and for
+/// the status of failed jobs.
+
+#include <grpcpp/support/status.h>
+
+#include <exception>
+
+#include "surfel/base/error.h"
+
+namespace surfel::worker {
+
+/// kInvalidArgument -> INVALID_ARGUMENT, kNotFound -> NOT_FOUND, kResourceExhausted ->
+/// RESOURCE_EXHAUSTED, kCancelled -> CANCELLED, kDeadlineExceeded -> DEADLINE_EXCEEDED,
+/// kUnavailable -> UNAVAILABLE, kFailedPrecondition -> FAILED_PRECONDITION, kInternal -> INTERNAL.
+grpc::StatusCode ToStatusCode(ErrorCode code);
+
+/// The status for an exception caught at a handler boundary: surfel::Error by its code and
+/// message; anything else is INTERNAL ("internal error: ..."), a bug.
+grpc::Status ToStatus(const std::exception& e);
+/// Same, for the exception in flight (call inside a catch block); never throws.
+grpc::Status CurrentExceptionStatus() noexcept;
+
+}  // namespace surfel::worker
