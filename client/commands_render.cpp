@@ -96,7 +96,7 @@ void RunRender(RenderArgs& a) {
     *r.mutable_background() = ToProto(ParseVec3(a.background, "--background"));
     r.set_h(a.h);
     r.set_precision(a.precision);
-    r.set_degree(a.degree);
+    r.set_degree(static_cast<v1::RenderJob::Degree>(a.degree + 1));  // --degree 0..2
     r.set_max_iterations(a.max_iterations);
     r.set_format(format == ImageFormat::kPng ? v1::RenderJob::PNG
                  : a.half                    ? v1::RenderJob::EXR_HALF

@@ -63,7 +63,7 @@ void ValidateSpec(const v1::JobSpec& spec) {
         if (r.samples_per_pixel() != 0) CheckRange("render.samples_per_pixel", r.samples_per_pixel(), 1, 1024);
         CheckRange("render.h", r.h(), 0, 1e30);
         CheckRange("render.precision", r.precision(), 0, 1e30);
-        if (r.has_degree()) CheckRange("render.degree", r.degree(), 0, 2);
+        if (!v1::RenderJob::Degree_IsValid(r.degree())) Bad("render.degree", "unknown degree");
         CheckRange("render.max_iterations", r.max_iterations(), 0, 1000);
         CheckFinite("render.view", r.view());
         CheckFinite("render.background", r.background());
@@ -127,7 +127,7 @@ RenderOptions ToRenderOptions(const v1::RenderJob& job, const PointCloud& cloud)
     o.background = ToVec(job.background());
     o.surface.h = static_cast<float>(job.h());
     o.surface.precision = static_cast<float>(job.precision());
-    if (job.has_degree()) o.surface.degree = job.degree();
+    if (job.degree() != v1::RenderJob::DEGREE_UNSPECIFIED) o.surface.degree = static_cast<int>(job.degree()) - 1;
     if (job.max_iterations()) o.surface.max_iterations = job.max_iterations();
     return o;
 }
