@@ -7,7 +7,8 @@
 #include <filesystem>
 #include <fstream>
 #include <memory>
-#include <regex>
+#include <algorithm>
+#include <cctype>
 
 #include "surfel/base/error.h"
 #include "surfel/io/ply.h"
@@ -20,6 +21,14 @@ using worker::CurrentExceptionStatus;
 namespace {
 
 bool IsFinal(v1::JobState s) { return s == v1::SUCCEEDED || s == v1::FAILED || s == v1::CANCELLED; }
+
+// Upload ids name files: [A-Za-z0-9_-]{1,128}.
+void CheckUploadId(const std::string& id) {
+    const bool ok = !id.empty() && id.size() <= 128 && std::all_of(id.begin(), id.end(), [](char c) {
+        return std::isalnum(static_cast<unsigned char>(c)) || c == '_' || c == '-';
+    });
+    if (!ok) throw Error(ErrorCode::kInvalidArgument, "upload_id: must match [A-Za-z0-9_-]{1,128}");
+}
 
 v1::Vec3 ToProto(const Vec3f& v) {
     v1::Vec3 p;
@@ -88,9 +97,7 @@ private:
     void Chunk() {
         if (!started_) {
             id_ = request_.upload_id();
-            static const std::regex kId("[A-Za-z0-9_-]{1,128}");
-            if (!std::regex_match(id_, kId))
-                throw Error(ErrorCode::kInvalidArgument, "upload_id: must match [A-Za-z0-9_-]{1,128}");
+            CheckUploadId(id_);
             if (!service_.ClaimUpload(id_))
                 throw Error(ErrorCode::kFailedPrecondition, "upload " + id_ + " is in progress on another call");
             claimed_ = true;
@@ -447,9 +454,7 @@ grpc::ServerUnaryReactor* SurfelService::QueryUpload(grpc::CallbackServerContext
     return Unary(ctx, [&] {
         std::error_code ec;
         const std::string path = store_.UploadPath(req->upload_id());
-        static const std::regex kId("[A-Za-z0-9_-]{1,128}");
-        if (!std::regex_match(req->upload_id(), kId))
-            throw Error(ErrorCode::kInvalidArgument, "upload_id: must match [A-Za-z0-9_-]{1,128}");
+        CheckUploadId(req->upload_id());
         resp->set_committed_size(fs::exists(path, ec) ? static_cast<std::int64_t>(fs::file_size(path, ec)) : 0);
     });
 }

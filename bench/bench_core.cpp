@@ -1,0 +1,99 @@
+// Surfel's side of the comparisons of issues 3, 4 and 5 (bench/compare.py runs it beside the
+// peers and writes the tables in bench/README.md). Run alone: build/bin/bench_core
+#include "bench_common.h"
+#include "surfel/render/renderer.h"
+#include "surfel/surface/local_analysis.h"
+#include "surfel/surface/mls.h"
+
+namespace surfel::bench {
+namespace {
+
+void Knn(benchmark::State& state, const std::string& d) {
+    const PointCloud& c = Dataset(d);
+    for (auto _ : state) {
+        const KdTree tree(c.positions);  // the build is part of the job
+        benchmark::DoNotOptimize(tree.KnnAll(16));
+    }
+    state.counters["points"] = double(c.size());
+}
+
+void Normals(benchmark::State& state, const std::string& d) {
+    const PointCloud& c = Dataset(d);
+    NormalResult r;
+    for (auto _ : state) {
+        const KdTree tree(c.positions);
+        NormalOptions o;
+        o.k = 16;
+        o.orient_k = 10;
+        r = EstimateNormals(tree, o);
+    }
+    state.counters["points"] = double(c.size());
+    state.counters["within30"] = MeshFor(d).NormalAgreement(c.positions, r.normals);
+}
+
+void Mls(benchmark::State& state, const std::string& d) {
+    const PointCloud& c = Dataset(d);
+    MlsSurface::Batch b;
+    float h = 0;
+    for (auto _ : state) {
+        const KdTree tree(c.positions);
+        MlsOptions o;
+        o.degree = 2;
+        const MlsSurface mls(c, tree, o);
+        h = mls.h();
+        b = mls.ProjectAll(c.positions);
+    }
+    state.counters["h"] = h;
+    state.counters["failed"] = double(b.failed);
+    const auto s = MeshFor(d).Measure(b.positions);
+    const auto before = MeshFor(d).Measure(c.positions);
+    state.counters["mesh_mean"] = s.mean;
+    state.counters["mesh_rms"] = s.rms;
+    state.counters["input_mesh_mean"] = before.mean;
+}
+
+void SimplifyWith(benchmark::State& state, const std::string& d, SimplifyMethod m, int percent, bool adaptive) {
+    SimplifyOptions o;
+    o.method = m;
+    o.target = Target(d, percent);
+    o.adaptive = adaptive;
+    o.measure_error = false;
+    SimplifyResult r;
+    for (auto _ : state) r = Simplify(Dataset(d), o);
+    SimplifyCounters(state, d, r.cloud);
+}
+
+void RenderBench(benchmark::State& state, const std::string& d, int w, int h) {
+    const PointCloud& c = Dataset(d);
+    RenderOptions o;
+    o.camera = Camera::Framing(c.Bounds(), w, h);
+    RenderResult r;
+    for (auto _ : state) r = Render(c, o);
+    state.counters["rays"] = double(r.stats.primary_rays + r.stats.shadow_rays);
+    state.counters["hits"] = double(r.stats.hits);
+    state.counters["avg_iterations"] = r.stats.AverageIterations();
+    state.counters["rays_per_s"] = benchmark::Counter(double(r.stats.primary_rays + r.stats.shadow_rays),
+                                                      benchmark::Counter::kIsIterationInvariantRate);
+}
+
+[[maybe_unused]] const bool kRegistered = [] {
+    Register("knn16", CoreDatasets(), Knn);
+    Register("normals_oriented", CoreDatasets(), Normals, 1);
+    Register("mls_project", CoreDatasets(), Mls, 1);
+    for (auto [m, name] : {std::pair{SimplifyMethod::kHierarchical, "hierarchical"},
+                           std::pair{SimplifyMethod::kIncremental, "incremental"},
+                           std::pair{SimplifyMethod::kIterative, "iterative"},
+                           std::pair{SimplifyMethod::kParticle, "particle"}, std::pair{SimplifyMethod::kVoxel, "voxel"}})
+        for (int pct : {1, 10})
+            Register(std::string("simplify_") + name + "_" + std::to_string(pct) + "pct", SimplifyDatasets(),
+                     [m = m, pct](benchmark::State& s, const std::string& d) { SimplifyWith(s, d, m, pct, false); }, 1);
+    Register("render_200x400", {"bunny"}, [](benchmark::State& s, const std::string& d) { RenderBench(s, d, 200, 400); });
+    Register("render_1024x1024", {"bunny_scans_merged"},
+             [](benchmark::State& s, const std::string& d) { RenderBench(s, d, 1024, 1024); }, 1);
+    return true;
+}();
+
+}  // namespace
+}  // namespace surfel::bench
+
+BENCHMARK_MAIN();

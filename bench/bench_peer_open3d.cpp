@@ -1,0 +1,124 @@
+// Open3D 0.16 (Debian libopen3d-dev) on the tasks it shares with Surfel: kNN, normals +
+// consistent orientation, voxel down-sampling at the same output count, and the render path a
+// user would otherwise take: normals + Poisson reconstruction + a ray cast of the mesh with
+// Open3D's RaycastingScene (Embree). Run through bench/compare.py.
+#include <open3d/Open3D.h>
+#include <open3d/t/geometry/RaycastingScene.h>
+#include <tbb/parallel_for.h>
+
+#include <cmath>
+
+#include "bench_common.h"
+#include "surfel/render/renderer.h"
+
+namespace surfel::bench {
+namespace {
+
+std::shared_ptr<open3d::geometry::PointCloud> ToOpen3D(const PointCloud& c) {
+    auto p = std::make_shared<open3d::geometry::PointCloud>();
+    p->points_.reserve(c.size());
+    for (const Vec3f& x : c.positions) p->points_.emplace_back(x.cast<double>());
+    return p;
+}
+
+PointCloud FromOpen3D(const open3d::geometry::PointCloud& p) {
+    PointCloud c;
+    for (const auto& x : p.points_) c.positions.push_back(x.cast<float>());
+    return c;
+}
+
+void Knn(benchmark::State& state, const std::string& d) {
+    const auto pcd = ToOpen3D(Dataset(d));
+    for (auto _ : state) {
+        open3d::geometry::KDTreeFlann tree(*pcd);
+        std::vector<int> all(pcd->points_.size() * 16);
+        tbb::parallel_for(std::size_t(0), pcd->points_.size(), [&](std::size_t i) {
+            std::vector<int> idx;
+            std::vector<double> d2;
+            tree.SearchKNN(pcd->points_[i], 17, idx, d2);  // includes the point itself
+            std::copy(idx.begin() + 1, idx.end(), all.begin() + i * 16);
+        });
+        benchmark::DoNotOptimize(all);
+    }
+}
+
+void Normals(benchmark::State& state, const std::string& d) {
+    std::shared_ptr<open3d::geometry::PointCloud> pcd;
+    for (auto _ : state) {
+        state.PauseTiming();
+        pcd = ToOpen3D(Dataset(d));
+        state.ResumeTiming();
+        pcd->EstimateNormals(open3d::geometry::KDTreeSearchParamKNN(16));
+        pcd->OrientNormalsConsistentTangentPlane(10);
+    }
+    std::vector<Vec3f> n;
+    for (const auto& x : pcd->normals_) n.push_back(x.cast<float>());
+    state.counters["within30"] = MeshFor(d).NormalAgreement(Dataset(d).positions, n);
+}
+
+double VoxelSizeFor(const open3d::geometry::PointCloud& pcd, std::size_t target) {
+    const double diag = (pcd.GetMaxBound() - pcd.GetMinBound()).norm();
+    double lo = diag * 1e-5, hi = diag;
+    for (int i = 0; i < 40; ++i) {
+        const double mid = std::sqrt(lo * hi);
+        (pcd.VoxelDownSample(mid)->points_.size() >= target ? lo : hi) = mid;
+    }
+    return lo;  // the largest size still giving >= target points
+}
+
+void Voxel(benchmark::State& state, const std::string& d, int percent) {
+    const auto pcd = ToOpen3D(Dataset(d));
+    const double size = VoxelSizeFor(*pcd, Target(d, percent));
+    std::shared_ptr<open3d::geometry::PointCloud> out;
+    for (auto _ : state) out = pcd->VoxelDownSample(size);
+    state.counters["voxel_size"] = size;
+    SimplifyCounters(state, d, FromOpen3D(*out));
+}
+
+// Normals + Poisson + Embree ray cast of the mesh, the same camera as surfel render.
+void PoissonRender(benchmark::State& state, const std::string& d, int w, int h, int depth) {
+    const PointCloud& c = Dataset(d);
+    const Camera cam = Camera::Framing(c.Bounds(), w, h);
+    std::size_t hits = 0, triangles = 0;
+    for (auto _ : state) {
+        auto pcd = ToOpen3D(c);
+        pcd->EstimateNormals(open3d::geometry::KDTreeSearchParamKNN(16));
+        pcd->OrientNormalsConsistentTangentPlane(10);
+        auto [mesh, densities] = open3d::geometry::TriangleMesh::CreateFromPointCloudPoisson(*pcd, depth);
+        triangles = mesh->triangles_.size();
+        open3d::t::geometry::RaycastingScene scene;
+        scene.AddTriangles(open3d::t::geometry::TriangleMesh::FromLegacy(*mesh));
+        using open3d::core::Tensor;
+        const double hfov = 2.0 * std::atan(std::tan(cam.fovy_deg * M_PI / 360.0) * w / h) * 180.0 / M_PI;
+        const Tensor rays = open3d::t::geometry::RaycastingScene::CreateRaysPinhole(
+            hfov, Tensor::Init<float>({float(cam.target.x()), float(cam.target.y()), float(cam.target.z())}),
+            Tensor::Init<float>({float(cam.eye.x()), float(cam.eye.y()), float(cam.eye.z())}),
+            Tensor::Init<float>({float(cam.up.x()), float(cam.up.y()), float(cam.up.z())}), w, h);
+        auto result = scene.CastRays(rays);
+        const Tensor t = result["t_hit"].Contiguous();
+        const float* p = t.GetDataPtr<float>();
+        hits = 0;
+        for (int64_t i = 0; i < t.NumElements(); ++i) hits += std::isfinite(p[i]);
+    }
+    state.counters["hits"] = double(hits);
+    state.counters["triangles"] = double(triangles);
+}
+
+[[maybe_unused]] const bool kRegistered = [] {
+    open3d::utility::SetVerbosityLevel(open3d::utility::VerbosityLevel::Error);
+    Register("knn16", CoreDatasets(), Knn);
+    Register("normals_oriented", CoreDatasets(), Normals, 1);
+    for (int pct : {1, 10})
+        Register("simplify_voxel_" + std::to_string(pct) + "pct", SimplifyDatasets(),
+                 [pct](benchmark::State& s, const std::string& d) { Voxel(s, d, pct); }, 1);
+    Register("render_200x400", {"bunny"},
+             [](benchmark::State& s, const std::string& d) { PoissonRender(s, d, 200, 400, 8); }, 1);
+    Register("render_1024x1024", {"bunny_scans_merged"},
+             [](benchmark::State& s, const std::string& d) { PoissonRender(s, d, 1024, 1024, 9); }, 1);
+    return true;
+}();
+
+}  // namespace
+}  // namespace surfel::bench
+
+BENCHMARK_MAIN();

@@ -1,0 +1,162 @@
+#!/usr/bin/env python3
+"""Runs Surfel's benchmarks and the peers' (CGAL, PCL, Open3D) in one go and writes markdown
+tables with ratios: bench/compare.py [--bin build/bin] [--out bench/results.md] [--filter REGEX]
+
+Each benchmark runs in its own process, so `peak_rss_mb` is that benchmark's own peak (the
+dataset loaded plus the algorithm). Times are wall-clock (both cores available to everyone).
+"""
+import argparse
+import datetime
+import json
+import os
+import re
+import subprocess
+import sys
+import tempfile
+
+PROGRAMS = [("bench_core", "surfel"), ("bench_peer_cgal", "CGAL 5.5"), ("bench_peer_pcl", "PCL 1.13"),
+            ("bench_peer_open3d", "Open3D 0.16")]
+
+# Which surfel benchmark a peer's task is compared with, and what the task is called in the table.
+SIMPLIFY_PEER_NAMES = {("CGAL 5.5", "hierarchical"): "hierarchy_simplify_point_set",
+                       ("CGAL 5.5", "voxel"): "grid_simplify_point_set",
+                       ("CGAL 5.5", "wlop"): "wlop_simplify_and_regularize_point_set",
+                       ("PCL 1.13", "voxel"): "VoxelGrid", ("Open3D 0.16", "voxel"): "VoxelDownSample"}
+
+
+def run_all(bin_dir, regex):
+    rows = []
+    for program, impl in PROGRAMS:
+        exe = os.path.join(bin_dir, program)
+        if not os.path.exists(exe):
+            print(f"compare: {program} not built, skipped", file=sys.stderr)
+            continue
+        names = subprocess.run([exe, "--benchmark_list_tests"], capture_output=True, text=True,
+                               check=True).stdout.split()
+        for name in names:
+            if regex and not re.search(regex, name):
+                continue
+            with tempfile.NamedTemporaryFile(suffix=".json") as out:
+                print(f"compare: {impl}: {name}", file=sys.stderr, flush=True)
+                r = subprocess.run([exe, f"--benchmark_filter=^{re.escape(name)}$",
+                                    f"--benchmark_out={out.name}", "--benchmark_out_format=json"],
+                                   capture_output=True, text=True)
+                if r.returncode != 0:
+                    print(f"compare: {name} failed:\n{r.stderr[-2000:]}", file=sys.stderr)
+                    continue
+                data = json.load(open(out.name))
+            for b in data["benchmarks"]:
+                task, dataset = b["name"].split("/")[:2]
+                ms = b["real_time"] if b["time_unit"] == "ms" else b["real_time"] / 1e6
+                extra = {k: v for k, v in b.items() if k not in (
+                    "name", "run_name", "run_type", "repetitions", "repetition_index", "threads", "iterations",
+                    "real_time", "cpu_time", "time_unit", "family_index", "per_family_instance_index",
+                    "aggregate_name", "aggregate_unit", "label")}
+                rows.append({"impl": impl, "task": task, "dataset": dataset, "ms": ms, **extra})
+    return rows
+
+
+def fmt(v, digits=3):
+    if isinstance(v, float):
+        if v == 0:
+            return "0"
+        if abs(v) >= 1000:
+            return f"{v:,.0f}"
+        if abs(v) >= 1:
+            return f"{v:.{digits}g}" if abs(v) < 100 else f"{v:.0f}"
+        return f"{v:.{digits}g}"
+    return str(v)
+
+
+def table(header, body):
+    out = ["| " + " | ".join(header) + " |", "|" + "|".join("---" if i == 0 else "---:" for i in range(len(header))) + "|"]
+    out += ["| " + " | ".join(fmt(c) for c in row) + " |" for row in body]
+    return "\n".join(out)
+
+
+def core_section(rows):
+    lines = ["## Issue 3: neighbours, normals, MLS (`bench_core` beside the peers)", ""]
+    for task, title, quality in [
+            ("knn16", "16 nearest neighbours of every point (tree build included)", []),
+            ("normals_oriented", "normals (k = 16) + consistent orientation (MST, k = 10)",
+             [("within30", "within 30° of the mesh normal")]),
+            ("mls_project", "MLS projection of every point (degree 2, same h, neighbours within 3h)",
+             [("mesh_mean", "mean distance to bunny_mesh"), ("mesh_rms", "RMS distance")])]:
+        lines += [f"### {title}", ""]
+        for dataset in sorted({r["dataset"] for r in rows if r["task"] == task}):
+            sel = [r for r in rows if r["task"] == task and r["dataset"] == dataset]
+            ours = next((r for r in sel if r["impl"] == "surfel"), None)
+            body = []
+            for r in sorted(sel, key=lambda r: r["ms"]):
+                ratio = r["ms"] / ours["ms"] if ours else float("nan")
+                body.append([r["impl"], r["ms"], f"{ratio:.2f}×"] + [r.get(k, "–") for k, _ in quality])
+            lines += [f"`{dataset}`", "", table(["implementation", "time (ms)", "time / surfel's"] +
+                                                 [q for _, q in quality], body), ""]
+    return lines
+
+
+def render_section(rows):
+    lines = ["## Issue 4: render (surfel: ray tracing the point-set surface; Open3D: normals + Poisson + "
+             "Embree ray cast of the mesh)", ""]
+    for task in sorted({r["task"] for r in rows if r["task"].startswith("render")}):
+        sel = [r for r in rows if r["task"] == task]
+        ours = next((r for r in sel if r["impl"] == "surfel"), None)
+        body = []
+        for r in sorted(sel, key=lambda r: r["ms"]):
+            ratio = r["ms"] / ours["ms"] if ours else float("nan")
+            body.append([r["impl"], r["dataset"], r["ms"], f"{ratio:.2f}×", r.get("hits", "–"),
+                         r.get("avg_iterations", "–"), r.get("rays_per_s", "–")])
+        lines += [f"### {task}", "", table(["implementation", "dataset", "time (ms)", "time / surfel's", "hits",
+                                              "iterations per hit", "rays/s"], body), ""]
+    return lines
+
+
+def simplify_section(rows):
+    lines = ["## Issue 5: simplification at the same output count", "",
+             "`err` is Surfel's surface error (Δavg, Δmax of the input surface against the result's MLS "
+             "surface, relative to the bounding-box diagonal), the same metric for every implementation; "
+             "`mesh` is the mean distance of the output points to bunny_mesh.ply (bunny only). "
+             "`vs surfel` divides by Surfel's time for the same kind of method (hierarchical for "
+             "CGAL's hierarchy, voxel for the grids, particle for WLOP).", ""]
+    sel = [r for r in rows if r["task"].startswith("simplify_")]
+    for key in sorted({(r["dataset"], r["task"].rsplit("_", 1)[1]) for r in sel}):
+        dataset, pct = key
+        group = [r for r in sel if r["dataset"] == dataset and r["task"].endswith("_" + pct)]
+        ours = {r["task"].split("_")[1]: r for r in group if r["impl"] == "surfel"}
+        body = []
+        for r in sorted(group, key=lambda r: r["ms"]):
+            method = r["task"].split("_")[1]
+            name = method if r["impl"] == "surfel" else SIMPLIFY_PEER_NAMES.get((r["impl"], method), method)
+            ref = ours.get({"wlop": "particle"}.get(method, method))
+            ratio = f"{r['ms'] / ref['ms']:.2f}×" if ref and r["impl"] != "surfel" else "–"
+            body.append([f"{r['impl']} {name}", int(r.get("points", 0)), r["ms"], ratio,
+                         r.get("err_avg_rel", "–"), r.get("err_max_rel", "–"), r.get("mesh_mean", "–"),
+                         r.get("peak_rss_mb", "–")])
+        lines += [f"### `{dataset}` to {pct.replace('pct', ' %')}", "",
+                  table(["implementation", "points", "time (ms)", "vs surfel", "err avg (rel)", "err max (rel)",
+                         "mesh mean", "peak RSS (MB)"], body), ""]
+    return lines
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--bin", default="build/bin")
+    ap.add_argument("--out", default="bench/results.md")
+    ap.add_argument("--filter", default="")
+    ap.add_argument("--json", help="also keep the raw rows here")
+    a = ap.parse_args()
+    rows = run_all(a.bin, a.filter)
+    if a.json:
+        json.dump(rows, open(a.json, "w"), indent=1)
+    uname = os.uname()
+    lines = [f"# Benchmark results ({datetime.date.today()}, {os.cpu_count()} cores, {uname.sysname} "
+             f"{uname.release})", "", f"Produced by `bench/compare.py --bin {a.bin}`" +
+             (f" --filter '{a.filter}'" if a.filter else "") + "; wall-clock times.", ""]
+    lines += core_section(rows) + render_section(rows) + simplify_section(rows)
+    text = "\n".join(lines) + "\n"
+    open(a.out, "w").write(text)
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
