@@ -192,6 +192,7 @@ RenderResult Render(const PointCloud& cloud, const RenderOptions& opt, const Pro
     const AaSurface surface(cloud, opt.surface);
     const SceneData data{&surface, &cloud};
     const EmbreeScene scene(&data, cloud.size());
+    const double setup_ms = watch.ElapsedMs();
 
     const Camera::Frame frame = cam.MakeFrame();
     std::vector<Light> lights = opt.lights;
@@ -307,6 +308,7 @@ RenderResult Render(const PointCloud& cloud, const RenderOptions& opt, const Pro
         st.surface.Add(local.surface);
     });
     st.time_ms = watch.ElapsedMs();
+    st.setup_ms = setup_ms;
     st.h = h;
     st.precision = surface.precision();
     return result;

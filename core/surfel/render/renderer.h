@@ -63,7 +63,8 @@ struct RenderOptions {
 struct RenderStats {
     std::uint64_t primary_rays = 0, shadow_rays = 0, hits = 0;
     AaCounters surface;
-    double time_ms = 0;
+    double time_ms = 0;   ///< The whole render.
+    double setup_ms = 0;  ///< Of which: the surface (neighbour search, ball radii) and the BVH build.
     double h = 0, precision = 0;
     double AverageIterations() const { return surface.converged ? double(surface.iterations) / double(surface.converged) : 0.0; }
 };

@@ -58,34 +58,62 @@ class PolyFit {
 public:
     PolyFit(int degree, double h) : inv_h_(1.0 / h) {
         terms_ = degree == 0 ? 1 : degree == 1 ? 3 : 6;
-        M_.setZero();
         b_.setZero();
     }
+    /// Adds sample (x, y) with height z and weight w. Accumulates the 15 distinct moments
+    /// sum w x^a y^b (a + b <= 4) the normal matrix is made of, not the matrix itself.
     void Add(double x, double y, double z, double w) {
         const double xs = x * inv_h_, ys = y * inv_h_;
-        Eigen::Matrix<double, 6, 1> t;
-        t << 1.0, xs, ys, xs * xs, xs * ys, ys * ys;
-        M_.noalias() += w * t * t.transpose();
-        b_.noalias() += (w * z) * t;
+        const double wx = w * xs, wy = w * ys;
+        const double wxx = wx * xs, wxy = wx * ys, wyy = wy * ys;
+        double* m = mom_;
+        m[0] += w;
+        m[1] += wx;
+        m[2] += wy;
+        m[3] += wxx;
+        m[4] += wxy;
+        m[5] += wyy;
+        m[6] += wxx * xs;   // x^3
+        m[7] += wxx * ys;   // x^2 y
+        m[8] += wxy * ys;   // x y^2
+        m[9] += wyy * ys;   // y^3
+        m[10] += wxx * xs * xs;  // x^4
+        m[11] += wxx * xs * ys;  // x^3 y
+        m[12] += wxx * ys * ys;  // x^2 y^2
+        m[13] += wxy * ys * ys;  // x y^3
+        m[14] += wyy * ys * ys;  // y^4
+        b_[0] += w * z;
+        b_[1] += wx * z;
+        b_[2] += wy * z;
+        b_[3] += wxx * z;
+        b_[4] += wxy * z;
+        b_[5] += wyy * z;
         wsum_ += w;
     }
     double weight_sum() const { return wsum_; }
     /// Solves; falls back to lower degrees when the system is singular. False when even the
     /// constant fit has no weight.
     bool Solve(PolyCoeffs* out) const {
+        // The normal matrix M(i, j) = sum w t_i t_j from the moments, t = (1, x, y, x^2, xy, y^2).
+        static constexpr int kMoment[6][6] = {{0, 1, 2, 3, 4, 5},     {1, 3, 4, 6, 7, 8},
+                                              {2, 4, 5, 7, 8, 9},     {3, 6, 7, 10, 11, 12},
+                                              {4, 7, 8, 11, 12, 13},  {5, 8, 9, 12, 13, 14}};
+        Eigen::Matrix<double, 6, 6> M;
+        for (int i = 0; i < 6; ++i)
+            for (int j = 0; j < 6; ++j) M(i, j) = mom_[kMoment[i][j]];
         for (int terms = terms_; terms >= 1; terms = terms == 6 ? 3 : terms == 3 ? 1 : 0) {
             Eigen::Matrix<double, 6, 1> sol = Eigen::Matrix<double, 6, 1>::Zero();
             if (terms == 6) {
-                Eigen::LDLT<Eigen::Matrix<double, 6, 6>> s(M_);
+                Eigen::LDLT<Eigen::Matrix<double, 6, 6>> s(M);
                 if (s.info() != Eigen::Success || !Conditioned(s.vectorD())) continue;
                 sol = s.solve(b_);
             } else if (terms == 3) {
-                Eigen::LDLT<Eigen::Matrix3d> s(M_.topLeftCorner<3, 3>());
+                Eigen::LDLT<Eigen::Matrix3d> s(M.topLeftCorner<3, 3>());
                 if (s.info() != Eigen::Success || !Conditioned(s.vectorD())) continue;
                 sol.head<3>() = s.solve(b_.head<3>());
             } else {
-                if (!(M_(0, 0) > 1e-300)) return false;
-                sol[0] = b_[0] / M_(0, 0);
+                if (!(M(0, 0) > 1e-300)) return false;
+                sol[0] = b_[0] / M(0, 0);
             }
             if (!sol.allFinite()) continue;
             const double ih = inv_h_;
@@ -109,7 +137,7 @@ private:
     int terms_;
     double inv_h_;
     double wsum_ = 0;
-    Eigen::Matrix<double, 6, 6> M_;
+    double mom_[15] = {};
     Eigen::Matrix<double, 6, 1> b_;
 };
 

@@ -317,6 +317,8 @@ void JobManager::Execute(const std::string& id) {
         done.set_stage("done");
         Transition(done, v1::SUCCEEDED);
         Notify(id, FinishedEvent(done));
+        running_.erase(id);  // in the same critical section: Get never sees a stale RUNNING
+        listeners_.erase(id);
     } catch (...) {
         grpc::Status status = CurrentExceptionStatus();
         std::lock_guard lock(mutex_);
@@ -342,12 +344,9 @@ void JobManager::Execute(const std::string& id) {
             done.set_status_message(status.error_message());
             Transition(done, status.error_code() == grpc::StatusCode::CANCELLED ? v1::CANCELLED : v1::FAILED);
             Notify(id, FailedEvent(done));
+            listeners_.erase(id);
         }
-    }
-    {
-        std::lock_guard lock(mutex_);
         running_.erase(id);
-        if (!requeued) listeners_.erase(id);
     }
     const double seconds = std::chrono::duration<double>(Clock::now() - started).count();
     if (requeued)

@@ -164,6 +164,7 @@ nlohmann::json RenderReportJson(const RenderStats& s, std::size_t points, int wi
             {"h", s.h},
             {"precision", s.precision},
             {"rays_per_second", s.time_ms > 0 ? 1000.0 * double(s.primary_rays + s.shadow_rays) / s.time_ms : 0.0},
+            {"setup_ms", s.setup_ms},
             {"time_ms", s.time_ms}};
 }
 
