@@ -66,8 +66,9 @@ void RegisterSimplifyCommands(CLI::App& app) {
     AddCommonFlags(sub, &a->flags);
     AddJobFlags(sub, &a->job);
     sub->footer(
-        "Runs in-process, or on a server with --server host:port. Every method hits --target exactly. The report gives the surface error of the input against\n"
-        "the result (Delta_max, Delta_avg; absolute and relative to the bounding-box diagonal).\n"
+        "Runs in-process, or on a server with --server host:port. Every method hits --target\n"
+        "exactly. The report gives the surface error of the input against the result\n"
+        "(Delta_max, Delta_avg; absolute and relative to the bounding-box diagonal).\n"
         "Examples:\n"
         "  surfel simplify bunny.ply -o bunny_1k.ply --method hierarchical --target 1000\n"
         "  surfel simplify scan.ply -o scan_s.ply --method iterative --error 0.0005 --json\n"

@@ -39,10 +39,17 @@ void ParticleSimulation(const PointCloud& input, std::span<const Vec3f> normals,
         for (std::size_t i = 0; i < n; ++i)
             scale[i] = std::clamp(median / std::max(1e-12, static_cast<double>(variation[i])), 0.5, 2.0);
     }
+    // Outliers (isolated samples: tiny density, so a huge area) would draw particles away from
+    // the surface: an area counts at most 4x the median, a reach (below) at most 2x the median.
+    std::vector<float> sorted_radius(density.radius);
+    std::nth_element(sorted_radius.begin(), sorted_radius.begin() + static_cast<std::ptrdiff_t>(n / 2),
+                     sorted_radius.end());
+    const float median_radius = sorted_radius[n / 2];
+    const double max_area = 4.0 * std::numbers::pi * double(median_radius) * median_radius / 6.0;
     std::vector<double> weight(n);
     double total = 0.0;
     for (std::size_t i = 0; i < n; ++i) {
-        const double area = 1.0 / std::max(1e-30, static_cast<double>(density.density[i]));
+        const double area = std::min(max_area, 1.0 / std::max(1e-30, static_cast<double>(density.density[i])));
         weight[i] = area / (scale[i] * scale[i]);  // expected particles ~ area / r^2
         total += weight[i];
     }
@@ -107,6 +114,13 @@ void ParticleSimulation(const PointCloud& input, std::span<const Vec3f> normals,
                 const std::uint32_t q = tree.Nearest(moved).index;
                 const Vec3f& nq = normals[q];
                 moved -= (moved - points[q]).dot(nq) * nq;
+                // Stay on the sampled surface: at an open boundary (a scan's edge, a hole) the
+                // tangent plane goes on where the samples stop, and particles pushed outward
+                // would drift along it. Keep them within the 6-neighbour radius of the closest
+                // original point.
+                const Vec3f off = moved - points[q];
+                const float reach = std::min(density.radius[q], 2.0f * median_radius), len_off = off.norm();
+                if (len_off > reach) moved = points[q] + off * (reach / len_off);
                 next[p] = moved;
             }
         });

@@ -46,15 +46,20 @@ Sums OneSided(const PointCloud& p, const PointCloud& p_prime, float h_src, float
     dst_opt.degree = degree;
     MlsSurface s_prime(p_prime, tree_dst, dst_opt);
     auto proj = s_prime.ProjectAll(q.positions, progress ? ProgressFn([&](double f) { return progress(0.5 + 0.5 * f); }) : ProgressFn{});
-    // Samples that failed either projection are left out (counted); the check below finds them.
+    // d(q, S') is at most the distance to the nearest sample of P' (the samples lie on S'): that
+    // bound caps an MLS projection that extrapolates badly, and stands in when the projection
+    // onto S' fails (q farther than the cutoff from P': a region the other cloud lost). Samples
+    // whose projection onto S itself fails are left out.
     Sums sums;
     for (std::size_t i = 0; i < q0.size(); ++i) {
-        const bool ok = proj.normals[i].squaredNorm() > 0 && q.normals[i].squaredNorm() > 0;
-        if (!ok) {
+        if (q.normals[i].squaredNorm() == 0) {
             ++sums.failed;
             continue;
         }
-        const double d = (q.positions[i] - proj.positions[i]).cast<double>().norm();
+        const double nearest = std::sqrt(double(tree_dst.Nearest(q.positions[i]).dist2));
+        double d = nearest;
+        if (proj.normals[i].squaredNorm() > 0) d = std::min(d, (q.positions[i] - proj.positions[i]).cast<double>().norm());
+        else ++sums.failed;
         sums.max = std::max(sums.max, d);
         sums.sum += d;
         sums.sum2 += d * d;

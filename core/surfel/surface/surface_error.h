@@ -29,11 +29,15 @@ struct SurfaceError {
     double max_relative() const { return diagonal > 0 ? max / diagonal : 0.0; }
     double avg_relative() const { return diagonal > 0 ? avg / diagonal : 0.0; }
     std::size_t samples = 0; ///< |Q| actually measured
-    std::size_t failed = 0;  ///< Samples that could not be projected (left out)
+    /// Samples whose projection onto S' failed; their distance is the one to the nearest sample
+    /// of P' (an upper bound). Samples that cannot be projected onto S are left out and counted
+    /// here too.
+    std::size_t failed = 0;
 };
 
 /// Delta_max(S, S') and Delta_avg(S, S'): Q is P projected onto its own MLS surface S (so Q lies
-/// on S), and d(q, S') = |q - Psi_P'(q)| with the MLS projection onto S' (options.degree).
+/// on S), and d(q, S') = |q - Psi_P'(q)| with the MLS projection onto S' (options.degree), capped
+/// by the distance from q to the nearest sample of P' (which lies on S').
 SurfaceError MeasureSurfaceError(const PointCloud& p, const PointCloud& p_prime, const SurfaceErrorOptions& options = {},
                                  const ProgressFn& progress = {});
 

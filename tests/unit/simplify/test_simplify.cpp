@@ -53,7 +53,7 @@ TEST_P(EveryMethod, SphereExactCountOnTheSurfaceWithOutwardNormalsAndCoveringSpl
     std::vector<Neighbor> near;
     std::size_t uncovered = 0;
     for (const Vec3f& p : c.positions) {
-        tree.Radius(p, max_radius, &near);
+        tree.Radius(p, max_radius * 1.001f, &near);
         bool covered = false;
         for (const Neighbor& nb : near) covered |= std::sqrt(nb.dist2) <= s.radii[nb.index] * 1.0001f;
         uncovered += !covered;
