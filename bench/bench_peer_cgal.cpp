@@ -134,8 +134,9 @@ void Wlop(benchmark::State& state, const std::string& d, int percent) {
                  [pct](benchmark::State& s, const std::string& d) { Hierarchy(s, d, pct); }, 1);
         Register("simplify_voxel_" + p, SimplifyDatasets(),
                  [pct](benchmark::State& s, const std::string& d) { Grid(s, d, pct); }, 1);
-        Register("simplify_wlop_" + p, SimplifyDatasets(),
-                 [pct](benchmark::State& s, const std::string& d) { Wlop(s, d, pct); }, 1);
+        if (pct == 1)  // WLOP to 10 % of 362k points runs for many minutes: 1 % only
+            Register("simplify_wlop_" + p, SimplifyDatasets(),
+                     [pct](benchmark::State& s, const std::string& d) { Wlop(s, d, pct); }, 1);
     }
     return true;
 }();

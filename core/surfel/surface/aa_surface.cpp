@@ -109,7 +109,7 @@ bool AaSurface::FitAt(const Vec3d& r, Fit* fit) const {
     double wsum = 0;
     impl_->grid->ForEachWithin(r.cast<float>(), o.cutoff * o.h, [&](std::uint32_t idx, const Vec3f& p, float) {
         const Vec3d d = p.cast<double>() - r;
-        const double w = std::exp(-d.squaredNorm() * inv_h2);
+        const double w = GaussExp(-d.squaredNorm() * inv_h2);
         s.push_back({d, w, idx});
         B.noalias() += w * d * d.transpose();
         wsum += w;
@@ -156,7 +156,7 @@ AaEvaluation AaSurface::Evaluate(const Vec3d& x) const {
     const PointCloud& cloud = impl_->cloud;
     impl_->grid->ForEachWithin(x.cast<float>(), o.cutoff * o.h, [&](std::uint32_t idx, const Vec3f& p, float) {
         const Vec3d d = p.cast<double>() - x;
-        const double w = std::exp(-d.squaredNorm() * inv_h2);
+        const double w = GaussExp(-d.squaredNorm() * inv_h2);
         B.noalias() += w * d * d.transpose();  // eq. 2-4: covariances in directions through x
         sum += w * p.cast<double>();
         wsum += w;

@@ -7,6 +7,7 @@
 #include <algorithm>
 #include <cmath>
 #include <numbers>
+#include <limits>
 #include <numeric>
 #include <queue>
 
@@ -73,6 +74,11 @@ CovarianceFrame AnalyzeNeighborhood(std::span<const Vec3f> points, std::span<con
     return f;
 }
 
+namespace {
+std::size_t OrientOverGraph(std::span<const Vec3f> pts, std::vector<Vec3f>& normals, const KnnTable& knn, int kk,
+                            std::size_t* flipped, const ProgressFn& progress);
+}  // namespace
+
 NormalResult EstimateNormals(const KdTree& tree, const NormalOptions& opt, const ProgressFn& progress) {
     if (opt.k < 3) throw Error(ErrorCode::kInvalidArgument, "normal estimation needs k >= 3, got " + std::to_string(opt.k));
     const std::size_t n = tree.size();
@@ -117,26 +123,30 @@ NormalResult EstimateNormals(const KdTree& tree, const NormalOptions& opt, const
         }
         tracker.Advance(static_cast<double>(r.size()));
     });
-    if (opt.orient)
-        res.components = OrientNormals(tree, res.normals, opt.orient_k, &res.flipped,
-                                       progress ? ProgressFn([&](double f) { return progress(0.7 + 0.3 * f); }) : ProgressFn{});
+    if (opt.orient) {
+        const ProgressFn hook = progress ? ProgressFn([&](double f) { return progress(0.7 + 0.3 * f); }) : ProgressFn{};
+        const int kk = std::max(1, std::min<int>(opt.orient_k, static_cast<int>(n) - 1));
+        // The orientation graph's neighbours are the first orient_k of the k already found.
+        res.components = kk <= k ? OrientOverGraph(pts, res.normals, knn, kk, &res.flipped, hook)
+                                 : OrientNormals(tree, res.normals, opt.orient_k, &res.flipped, hook);
+    }
     return res;
 }
 
-std::size_t OrientNormals(const KdTree& tree, std::vector<Vec3f>& normals, int k, std::size_t* flipped,
-                          const ProgressFn& progress) {
-    const std::size_t n = tree.size();
-    SURFEL_CHECK(normals.size() == n, normals.size() << " normals for " << n << " points");
+namespace {
+
+// Orientation over the graph of the first kk columns of `knn` (rows sorted by distance).
+std::size_t OrientOverGraph(std::span<const Vec3f> pts, std::vector<Vec3f>& normals, const KnnTable& knn, int kk,
+                            std::size_t* flipped, const ProgressFn& progress) {
+    const std::size_t n = pts.size();
     if (flipped) *flipped = 0;
     if (n == 0) return 0;
-    const auto pts = tree.points();
-    const int kk = std::max(1, std::min<int>(k, static_cast<int>(n) - 1));
-    const KnnTable knn = n > 1 ? tree.KnnAll(kk) : KnnTable{};
+    auto row = [&](std::size_t i) { return knn.Row(i).first(static_cast<std::size_t>(std::min(kk, knn.k))); };
 
     // Symmetric adjacency (CSR) of the k-neighbour graph.
     std::vector<std::uint32_t> degree(n + 1, 0);
     for (std::size_t i = 0; i < knn.size(); ++i)
-        for (auto j : knn.Row(i))
+        for (auto j : row(i))
             if (j != UINT32_MAX) {
                 ++degree[i];
                 ++degree[j];
@@ -146,7 +156,7 @@ std::size_t OrientNormals(const KdTree& tree, std::vector<Vec3f>& normals, int k
     std::vector<std::uint32_t> adj(start[n]);
     std::vector<std::uint32_t> fill(start.begin(), start.end() - 1);
     for (std::size_t i = 0; i < knn.size(); ++i)
-        for (auto j : knn.Row(i))
+        for (auto j : row(i))
             if (j != UINT32_MAX) {
                 adj[fill[i]++] = j;
                 adj[fill[j]++] = static_cast<std::uint32_t>(i);
@@ -197,10 +207,20 @@ std::size_t OrientNormals(const KdTree& tree, std::vector<Vec3f>& normals, int k
     std::priority_queue<Edge, std::vector<Edge>, std::greater<Edge>> heap;
     ProgressTracker tracker(progress, static_cast<double>(n), "normal orientation");
     std::size_t flips = 0, done = 0;
+    // Only edges that improve on the best one known for their endpoint enter the heap (the same
+    // tree as pushing every edge, with the same tie-break, but far less heap traffic).
+    std::vector<float> best(n, std::numeric_limits<float>::infinity());
+    std::vector<std::uint32_t> best_from(n, UINT32_MAX);
     auto push_edges = [&](std::uint32_t u) {
         for (std::uint32_t e = start[u]; e < start[u + 1]; ++e) {
             const std::uint32_t v = adj[e];
-            if (!visited[v]) heap.push({1.0f - std::abs(normals[u].dot(normals[v])), v, u});
+            if (visited[v]) continue;
+            const float cost = 1.0f - std::abs(normals[u].dot(normals[v]));
+            if (cost < best[v] || (cost == best[v] && u < best_from[v])) {
+                best[v] = cost;
+                best_from[v] = u;
+                heap.push({cost, v, u});
+            }
         }
     };
     for (const Comp& c : comps) {
@@ -229,6 +249,17 @@ std::size_t OrientNormals(const KdTree& tree, std::vector<Vec3f>& normals, int k
     }
     if (flipped) *flipped = flips;
     return comps.size();
+}
+
+}  // namespace
+
+std::size_t OrientNormals(const KdTree& tree, std::vector<Vec3f>& normals, int k, std::size_t* flipped,
+                          const ProgressFn& progress) {
+    const std::size_t n = tree.size();
+    SURFEL_CHECK(normals.size() == n, normals.size() << " normals for " << n << " points");
+    const int kk = std::max(1, std::min<int>(k, static_cast<int>(n) - 1));
+    const KnnTable knn = n > 1 ? tree.KnnAll(kk) : KnnTable{};
+    return OrientOverGraph(tree.points(), normals, knn, kk, flipped, progress);
 }
 
 std::vector<float> NormalVariation(const KdTree& tree, std::span<const Vec3f> normals, int k) {

@@ -10,6 +10,7 @@
 #include "surfel/base/error.h"
 #include "surfel/surface/local_analysis.h"
 #include "surfel/surface/poly_fit.h"
+#include "surfel/spatial/uniform_grid.h"
 
 namespace surfel {
 
@@ -18,6 +19,7 @@ struct MlsSurface::Impl {
     const KdTree& tree;
     MlsOptions opt;
     SamplingDensity density;  // only for adaptive h
+    std::unique_ptr<UniformGrid> grid;  // fixed h: neighbours within cutoff * h, cell = cutoff * h
 
     Impl(const PointCloud& c, const KdTree& t, const MlsOptions& o) : cloud(c), tree(t), opt(o) {}
 
@@ -39,38 +41,51 @@ struct MlsSurface::Impl {
     std::optional<MlsPoint> Project(const Vec3f& xf, std::vector<Neighbor>& nbrs) const {
         const float h = LocalH(xf, nbrs);
         const double inv_h2 = 1.0 / (double(h) * h);
-        tree.Radius(xf, opt.cutoff * h, &nbrs);
-        if (static_cast<int>(nbrs.size()) < opt.min_neighbors) return std::nullopt;
+        if (grid) {
+            nbrs.clear();
+            grid->ForEachWithin(xf, opt.cutoff * h, [&](std::uint32_t i, const Vec3f&, float d2) {
+                nbrs.push_back({i, d2});
+            });
+        } else {
+            tree.Radius(xf, opt.cutoff * h, &nbrs);
+        }
+        const std::size_t m = nbrs.size();
+        if (static_cast<int>(m) < opt.min_neighbors) return std::nullopt;
         const auto pts = tree.points();
         const Vec3d x = xf.cast<double>();
-        Vec3d q = x, n = Vec3d::Zero();
+        // Neighbours relative to x, once (small, well-conditioned numbers), and their weights.
+        thread_local std::vector<Vec3d> rel;
+        thread_local std::vector<double> w;
+        rel.resize(m);
+        w.resize(m);
+        for (std::size_t i = 0; i < m; ++i) rel[i] = pts[nbrs[i].index].cast<double>() - x;
+        Vec3d q = Vec3d::Zero(), n = Vec3d::Zero();  // q relative to x
         int it = 0;
         for (; it < opt.max_iterations; ++it) {
+            // Reference plane (notes 1.3): weighted centroid and covariance around q, in one pass
+            // over the first and second moments about x.
             double ws = 0;
-            Vec3d c = Vec3d::Zero();
-            for (const auto& nb : nbrs) {
-                const Vec3d p = pts[nb.index].cast<double>();
-                const double w = std::exp(-(p - q).squaredNorm() * inv_h2);
-                ws += w;
-                c += w * p;
+            Vec3d s1 = Vec3d::Zero();
+            Eigen::Matrix3d s2 = Eigen::Matrix3d::Zero();
+            for (std::size_t i = 0; i < m; ++i) {
+                const Vec3d& d = rel[i];
+                const double wi = GaussExp(-(d - q).squaredNorm() * inv_h2);
+                ws += wi;
+                s1 += wi * d;
+                s2.noalias() += wi * d * d.transpose();
             }
             if (!(ws > 1e-12)) return std::nullopt;
-            c /= ws;
-            Eigen::Matrix3d C = Eigen::Matrix3d::Zero();
-            for (const auto& nb : nbrs) {
-                const Vec3d p = pts[nb.index].cast<double>();
-                const double w = std::exp(-(p - q).squaredNorm() * inv_h2);
-                const Vec3d d = p - c;
-                C.noalias() += w * d * d.transpose();
-            }
+            const Vec3d c = s1 / ws;
+            const Eigen::Matrix3d C = s2 - ws * c * c.transpose();
             Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es;
             es.computeDirect(C);
             Vec3d nn = es.eigenvectors().col(0).normalized();
             if (it > 0 && nn.dot(n) < 0) nn = -nn;
             n = nn;
-            const Vec3d q_new = x - (x - c).dot(n) * n;
-            const double moved = (q_new - q).norm();
-            q = q_new;
+            // The foot of x on the plane through c with normal n: x - ((x - c) . n) n, relative to x.
+            const Vec3d q_next = c.dot(n) * n;
+            const double moved = (q_next - q).norm();
+            q = q_next;
             if (moved < opt.tolerance * h) {
                 ++it;
                 break;
@@ -79,29 +94,25 @@ struct MlsSurface::Impl {
         // Polynomial over the plane, weights centred at q.
         const LocalFrame frame = LocalFrame::FromNormal(q, n);
         PolyFit fit(opt.degree, h);
-        for (const auto& nb : nbrs) {
-            const Vec3d p = pts[nb.index].cast<double>();
-            const double w = std::exp(-(p - q).squaredNorm() * inv_h2);
-            const Vec3d l = frame.ToLocal(p);
-            fit.Add(l.x(), l.y(), l.z(), w);
+        for (std::size_t i = 0; i < m; ++i) {
+            w[i] = GaussExp(-(rel[i] - q).squaredNorm() * inv_h2);
+            const Vec3d l = frame.ToLocal(rel[i]);
+            fit.Add(l.x(), l.y(), l.z(), w[i]);
         }
         PolyCoeffs g;
         if (!fit.Solve(&g)) return std::nullopt;
         MlsPoint out;
-        out.position = (q + g.c[0] * n).cast<float>();
+        out.position = (x + q + g.c[0] * n).cast<float>();
         Vec3d normal = frame.NormalAt(g, 0.0, 0.0);
         // Orientation: agree with the cloud's normals where it has them.
         if (cloud.has_normals()) {
             Vec3d avg = Vec3d::Zero();
-            for (const auto& nb : nbrs) {
-                const double w = std::exp(-(pts[nb.index].cast<double>() - q).squaredNorm() * inv_h2);
-                avg += w * cloud.normals[nb.index].cast<double>();
-            }
+            for (std::size_t i = 0; i < m; ++i) avg += w[i] * cloud.normals[nbrs[i].index].cast<double>();
             if (normal.dot(avg) < 0) normal = -normal;
         }
         out.normal = normal.cast<float>();
         out.iterations = it;
-        out.neighbors = static_cast<int>(nbrs.size());
+        out.neighbors = static_cast<int>(m);
         return out;
     }
 };
@@ -117,6 +128,14 @@ MlsSurface::MlsSurface(const PointCloud& cloud, const KdTree& tree, const MlsOpt
     if (options.adaptive || options.h == 0) impl_->density = ComputeSamplingDensity(tree);
     if (impl_->opt.h == 0) impl_->opt.h = DefaultScale(impl_->density);
     if (!(impl_->opt.h > 0)) throw Error(ErrorCode::kInvalidArgument, "cannot derive an MLS scale from fewer than 2 distinct points");
+    // A fixed scale: one uniform grid answers every neighbour query (faster than the kd-tree's
+    // radius search for this fixed radius). Skipped when the grid would be absurdly fine.
+    if (!options.adaptive) {
+        const BoundingBox box = cloud.Bounds();
+        const float cell = impl_->opt.cutoff * impl_->opt.h;
+        if (!box.empty() && (box.Extent() / cell).maxCoeff() < float(1 << 20))
+            impl_->grid = std::make_unique<UniformGrid>(cloud.positions, cell);
+    }
 }
 
 MlsSurface::~MlsSurface() = default;
