@@ -72,7 +72,7 @@ KdTree::KdTree(std::span<const Vec3f> points) : impl_(std::make_unique<Impl>()) 
         throw Error(ErrorCode::kResourceExhausted, "too many points for the kd-tree: " + std::to_string(points.size()));
     if (!impl_->points.empty()) {
         flann::Matrix<float> data(impl_->points.data()->data(), impl_->points.size(), 3);
-        impl_->tree = std::make_unique<FlannTree>(data, flann::KDTreeSingleIndexParams(10, true));
+        impl_->tree = std::make_unique<FlannTree>(data, flann::KDTreeSingleIndexParams(15, true));
         impl_->tree->buildIndex();
     }
 }
