@@ -37,6 +37,24 @@ SamplingDensity ComputeSamplingDensity(const KdTree& tree, int k, const Progress
     return d;
 }
 
+float MedianSpacing(const KdTree& tree, int k, std::size_t max_samples) {
+    const std::size_t n = tree.size();
+    if (n < 2) return 0.0f;
+    if (n <= max_samples || max_samples == 0) return ComputeSamplingDensity(tree, k).median_spacing;
+    const std::size_t stride = (n + max_samples - 1) / max_samples;
+    std::vector<Vec3f> queries;
+    for (std::size_t i = 0; i < n; i += stride) queries.push_back(tree.points()[i]);
+    const int kk = std::min<int>(k, static_cast<int>(n) - 1);
+    const KnnTable knn = tree.KnnBatch(queries, kk + 1);  // the query point itself comes first
+    std::vector<float> spacing(queries.size());
+    for (std::size_t i = 0; i < queries.size(); ++i) {
+        const float r2 = knn.Dist2(i)[kk];
+        spacing[i] = r2 > 0 ? static_cast<float>(std::sqrt(std::numbers::pi * r2 / kk)) : 0.0f;  // 1/sqrt(rho)
+    }
+    std::nth_element(spacing.begin(), spacing.begin() + spacing.size() / 2, spacing.end());
+    return spacing[spacing.size() / 2];
+}
+
 float DefaultScale(const SamplingDensity& density) { return 2.0f * density.median_spacing; }
 
 float DefaultScale(const KdTree& tree) {

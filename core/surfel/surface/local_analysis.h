@@ -23,6 +23,10 @@ struct SamplingDensity {
 /// Computes SamplingDensity with the k nearest neighbours (default 6, as Adamson & Alexa).
 SamplingDensity ComputeSamplingDensity(const KdTree& tree, int k = 6, const ProgressFn& progress = {});
 
+/// The median of the spacing eta over at most `max_samples` points (an even stride through the
+/// cloud; all of them when it is smaller): what DefaultScale needs, without a density per point.
+float MedianSpacing(const KdTree& tree, int k = 6, std::size_t max_samples = 20000);
+
 /// The default MLS / surface scale h of a cloud: 2 x the median sample spacing (eta). With the
 /// Gaussian theta(d) = exp(-d^2/h^2) about 4*pi samples carry most weight, enough for a stable
 /// plane and quadratic fit on well-sampled scans while keeping features of about 2 spacings.

@@ -61,22 +61,34 @@ struct MlsSurface::Impl {
         for (std::size_t i = 0; i < m; ++i) rel[i] = pts[nbrs[i].index].cast<double>() - x;
         Vec3d q = Vec3d::Zero(), n = Vec3d::Zero();  // q relative to x
         int it = 0;
+        bool converged = false;
         for (; it < opt.max_iterations; ++it) {
             // Reference plane (notes 1.3): weighted centroid and covariance around q, in one pass
             // over the first and second moments about x.
-            double ws = 0;
-            Vec3d s1 = Vec3d::Zero();
-            Eigen::Matrix3d s2 = Eigen::Matrix3d::Zero();
+            double ws = 0, sx = 0, sy = 0, sz = 0, sxx = 0, sxy = 0, sxz = 0, syy = 0, syz = 0, szz = 0;
+            const double qx = q.x(), qy = q.y(), qz = q.z();
             for (std::size_t i = 0; i < m; ++i) {
-                const Vec3d& d = rel[i];
-                const double wi = GaussExp(-(d - q).squaredNorm() * inv_h2);
+                const double dx = rel[i].x(), dy = rel[i].y(), dz = rel[i].z();
+                const double ex = dx - qx, ey = dy - qy, ez = dz - qz;
+                const double wi = GaussExp(-(ex * ex + ey * ey + ez * ez) * inv_h2);
+                w[i] = wi;
+                const double wx = wi * dx, wy = wi * dy, wz = wi * dz;
                 ws += wi;
-                s1 += wi * d;
-                s2.noalias() += wi * d * d.transpose();
+                sx += wx;
+                sy += wy;
+                sz += wz;
+                sxx += wx * dx;
+                sxy += wx * dy;
+                sxz += wx * dz;
+                syy += wy * dy;
+                syz += wy * dz;
+                szz += wz * dz;
             }
             if (!(ws > 1e-12)) return std::nullopt;
-            const Vec3d c = s1 / ws;
-            const Eigen::Matrix3d C = s2 - ws * c * c.transpose();
+            const Vec3d c = Vec3d(sx, sy, sz) / ws;
+            Eigen::Matrix3d C;
+            C << sxx, sxy, sxz, sxy, syy, syz, sxz, syz, szz;
+            C -= ws * c * c.transpose();
             Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es;
             es.computeDirect(C);
             Vec3d nn = es.eigenvectors().col(0).normalized();
@@ -88,14 +100,16 @@ struct MlsSurface::Impl {
             q = q_next;
             if (moved < opt.tolerance * h) {
                 ++it;
+                converged = true;
                 break;
             }
         }
-        // Polynomial over the plane, weights centred at q.
+        // Polynomial over the plane, weights centred at q. Once converged, the last iteration's
+        // weights are those (centred within tolerance * h of q) and are reused.
         const LocalFrame frame = LocalFrame::FromNormal(q, n);
         PolyFit fit(opt.degree, h);
         for (std::size_t i = 0; i < m; ++i) {
-            w[i] = GaussExp(-(rel[i] - q).squaredNorm() * inv_h2);
+            if (!converged) w[i] = GaussExp(-(rel[i] - q).squaredNorm() * inv_h2);
             const Vec3d l = frame.ToLocal(rel[i]);
             fit.Add(l.x(), l.y(), l.z(), w[i]);
         }
@@ -125,8 +139,9 @@ MlsSurface::MlsSurface(const PointCloud& cloud, const KdTree& tree, const MlsOpt
     if (options.h < 0 || !std::isfinite(options.h))
         throw Error(ErrorCode::kInvalidArgument, "MLS scale h must be > 0 (or 0 for the default), got " + std::to_string(options.h));
     if (!(options.cutoff >= 1.0f)) throw Error(ErrorCode::kInvalidArgument, "MLS cutoff must be >= 1 (in units of h)");
-    if (options.adaptive || options.h == 0) impl_->density = ComputeSamplingDensity(tree);
-    if (impl_->opt.h == 0) impl_->opt.h = DefaultScale(impl_->density);
+    if (options.adaptive) impl_->density = ComputeSamplingDensity(tree);
+    if (impl_->opt.h == 0)
+        impl_->opt.h = options.adaptive ? DefaultScale(impl_->density) : 2.0f * MedianSpacing(tree);
     if (!(impl_->opt.h > 0)) throw Error(ErrorCode::kInvalidArgument, "cannot derive an MLS scale from fewer than 2 distinct points");
     // A fixed scale: one uniform grid answers every neighbour query (faster than the kd-tree's
     // radius search for this fixed radius). Skipped when the grid would be absurdly fine.

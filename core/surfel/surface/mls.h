@@ -17,7 +17,7 @@ struct MlsOptions {
     float cutoff = 3.0f;      ///< Neighbours within cutoff * h (notes 1.3: weights below 1e-3 beyond 3h... exp(-9)).
     bool adaptive = false;    ///< Adaptive MLS (notes 1.3): h(x) = h * eta(x) / median(eta).
     int max_iterations = 8;   ///< Reference-plane iterations.
-    float tolerance = 1e-4f;  ///< Stop when the plane's foot point moves less than tolerance * h.
+    float tolerance = 1e-3f;  ///< Stop when the plane's foot point moves less than tolerance * h.
     int min_neighbors = 4;    ///< Fewer neighbours within the cutoff: no projection (nullopt).
 };
 
