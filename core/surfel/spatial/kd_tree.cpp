@@ -15,32 +15,34 @@ namespace {
 
 using FlannTree = flann::KDTreeSingleIndex<flann::L2_Simple<float>>;
 
-// k nearest, kept sorted by insertion into a caller-owned buffer (no allocation per query).
+// k nearest, kept sorted by insertion into a caller-owned buffer (no allocation per query once
+// the buffer has grown). The worst distance is cached: FLANN asks for it at every node.
 class KnnCollector : public flann::ResultSet<float> {
 public:
-    KnnCollector(std::vector<Neighbor>* out, std::size_t k) : out_(out), k_(k) {
-        out_->clear();
-        out_->reserve(k);
-    }
-    bool full() const override { return out_->size() == k_; }
-    float worstDist() const override {
-        return full() ? out_->back().dist2 : std::numeric_limits<float>::max();
-    }
+    KnnCollector(std::vector<Neighbor>* out, std::size_t k) : out_(out), k_(k) { out_->resize(k); }
+    ~KnnCollector() override { out_->resize(count_); }
+    bool full() const override { return count_ == k_; }
+    float worstDist() const override { return worst_; }
     void addPoint(float dist, std::size_t index) override {
-        if (full()) {
-            if (dist >= out_->back().dist2) return;
-            out_->pop_back();
+        const auto idx = static_cast<std::uint32_t>(index);
+        Neighbor* buf = out_->data();
+        if (count_ == k_ && !(dist < buf[k_ - 1].dist2 || (dist == buf[k_ - 1].dist2 && idx < buf[k_ - 1].index)))
+            return;
+        std::size_t i = count_ < k_ ? count_++ : k_ - 1;
+        // Shift larger entries up (ties by index, so the result is deterministic).
+        while (i > 0 && (buf[i - 1].dist2 > dist || (buf[i - 1].dist2 == dist && buf[i - 1].index > idx))) {
+            buf[i] = buf[i - 1];
+            --i;
         }
-        Neighbor n{static_cast<std::uint32_t>(index), dist};
-        auto it = std::upper_bound(out_->begin(), out_->end(), n, [](const Neighbor& a, const Neighbor& b) {
-            return a.dist2 < b.dist2 || (a.dist2 == b.dist2 && a.index < b.index);
-        });
-        out_->insert(it, n);
+        buf[i] = {idx, dist};
+        if (count_ == k_) worst_ = buf[k_ - 1].dist2;
     }
 
 private:
     std::vector<Neighbor>* out_;
     std::size_t k_;
+    std::size_t count_ = 0;
+    float worst_ = std::numeric_limits<float>::max();
 };
 
 // Everything within a radius (FLANN compares squared distances for L2_Simple).
