@@ -3,7 +3,8 @@
 tables with ratios: bench/compare.py [--bin build/bin] [--out bench/results.md] [--filter REGEX]
 
 Each benchmark runs in its own process, so `peak_rss_mb` is that benchmark's own peak (the
-dataset loaded plus the algorithm). Times are wall-clock (both cores available to everyone).
+dataset loaded plus the algorithm). Times are wall-clock (both cores available to everyone);
+benchmarks under 3 s are run 5 times and the median is reported.
 """
 import argparse
 import datetime
@@ -13,6 +14,8 @@ import re
 import subprocess
 import sys
 import tempfile
+
+MEDIAN_BELOW_MS = 3000  # benchmarks shorter than this are repeated 5 times (median reported)
 
 PROGRAMS = [("bench_core", "surfel"), ("bench_peer_cgal", "CGAL 5.5"), ("bench_peer_pcl", "PCL 1.13"),
             ("bench_peer_open3d", "Open3D 0.16")]
@@ -45,6 +48,16 @@ def run_all(bin_dir, regex):
                     print(f"compare: {name} failed:\n{r.stderr[-2000:]}", file=sys.stderr)
                     continue
                 data = json.load(open(out.name))
+                # Short benchmarks are noisy on a shared 2-core VM: run them 5 times, keep the median.
+                first = data["benchmarks"][0]
+                first_ms = first["real_time"] if first["time_unit"] == "ms" else first["real_time"] / 1e6
+                if first_ms < MEDIAN_BELOW_MS:
+                    r = subprocess.run([exe, f"--benchmark_filter=^{re.escape(name)}$", f"--benchmark_out={out.name}",
+                                        "--benchmark_out_format=json", "--benchmark_repetitions=5",
+                                        "--benchmark_report_aggregates_only=true"], capture_output=True, text=True)
+                    if r.returncode == 0:
+                        agg = json.load(open(out.name))["benchmarks"]
+                        data["benchmarks"] = [b for b in agg if b.get("aggregate_name") == "median"] or data["benchmarks"]
             for b in data["benchmarks"]:
                 task, dataset = b["name"].split("/")[:2]
                 ms = b["real_time"] if b["time_unit"] == "ms" else b["real_time"] / 1e6
@@ -151,7 +164,8 @@ def main():
     uname = os.uname()
     lines = [f"# Benchmark results ({datetime.date.today()}, {os.cpu_count()} cores, {uname.sysname} "
              f"{uname.release})", "", f"Produced by `bench/compare.py --bin {a.bin}`" +
-             (f" --filter '{a.filter}'" if a.filter else "") + "; wall-clock times.", ""]
+             (f" --filter '{a.filter}'" if a.filter else "") + "; wall-clock times, the median of 5 runs for "
+             "benchmarks under 3 s.", ""]
     lines += core_section(rows) + render_section(rows) + simplify_section(rows)
     text = "\n".join(lines) + "\n"
     open(a.out, "w").write(text)
