@@ -46,10 +46,11 @@ Sums OneSided(const PointCloud& p, const PointCloud& p_prime, float h_src, float
     dst_opt.degree = degree;
     MlsSurface s_prime(p_prime, tree_dst, dst_opt);
     auto proj = s_prime.ProjectAll(q.positions, progress ? ProgressFn([&](double f) { return progress(0.5 + 0.5 * f); }) : ProgressFn{});
-    // d(q, S') is at most the distance to the nearest sample of P' (the samples lie on S'): that
-    // bound caps an MLS projection that extrapolates badly, and stands in when the projection
-    // onto S' fails (q farther than the cutoff from P': a region the other cloud lost). Samples
-    // whose projection onto S itself fails are left out.
+    // d(q, S') = |q - Psi'(q)|. Where the projection onto S' fails (q farther than the cutoff
+    // from P': a region the other cloud lost) or lands farther than the nearest sample of P' plus
+    // h' (an extrapolating fit: the samples lie on S' up to about h'), the distance to that
+    // nearest sample stands in. Samples whose projection onto S itself fails are left out.
+    const double h_prime = s_prime.h();
     Sums sums;
     for (std::size_t i = 0; i < q0.size(); ++i) {
         if (q.normals[i].squaredNorm() == 0) {
@@ -58,7 +59,8 @@ Sums OneSided(const PointCloud& p, const PointCloud& p_prime, float h_src, float
         }
         const double nearest = std::sqrt(double(tree_dst.Nearest(q.positions[i]).dist2));
         double d = nearest;
-        if (proj.normals[i].squaredNorm() > 0) d = std::min(d, (q.positions[i] - proj.positions[i]).cast<double>().norm());
+        const double mls = (q.positions[i] - proj.positions[i]).cast<double>().norm();
+        if (proj.normals[i].squaredNorm() > 0 && mls <= nearest + h_prime) d = mls;
         else ++sums.failed;
         sums.max = std::max(sums.max, d);
         sums.sum += d;

@@ -29,15 +29,15 @@ struct SurfaceError {
     double max_relative() const { return diagonal > 0 ? max / diagonal : 0.0; }
     double avg_relative() const { return diagonal > 0 ? avg / diagonal : 0.0; }
     std::size_t samples = 0; ///< |Q| actually measured
-    /// Samples whose projection onto S' failed; their distance is the one to the nearest sample
-    /// of P' (an upper bound). Samples that cannot be projected onto S are left out and counted
-    /// here too.
+    /// Samples whose projection onto S' failed or extrapolated (landed farther than the nearest
+    /// sample of P' plus h'); their distance is the one to that nearest sample. Samples that
+    /// cannot be projected onto S are left out and counted here too.
     std::size_t failed = 0;
 };
 
 /// Delta_max(S, S') and Delta_avg(S, S'): Q is P projected onto its own MLS surface S (so Q lies
-/// on S), and d(q, S') = |q - Psi_P'(q)| with the MLS projection onto S' (options.degree), capped
-/// by the distance from q to the nearest sample of P' (which lies on S').
+/// on S), and d(q, S') = |q - Psi_P'(q)| with the MLS projection onto S' (options.degree); where
+/// that projection fails or extrapolates, the distance to the nearest sample of P'.
 SurfaceError MeasureSurfaceError(const PointCloud& p, const PointCloud& p_prime, const SurfaceErrorOptions& options = {},
                                  const ProgressFn& progress = {});
 
