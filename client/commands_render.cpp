@@ -3,6 +3,7 @@
 
 #include "cli_common.h"
 #include "job_exec.h"
+#include "surfel/worker/job_runner.h"
 #include "surfel/base/error.h"
 #include "surfel/io/image.h"
 #include "surfel/render/renderer.h"
@@ -63,14 +64,6 @@ struct RenderArgs {
     JobFlags job;
 };
 
-v1::Vec3 ToProto(const Vec3d& v) {
-    v1::Vec3 p;
-    p.set_x(v.x());
-    p.set_y(v.y());
-    p.set_z(v.z());
-    return p;
-}
-
 void RunRender(RenderArgs& a) {
     const ImageFormat format = ImageFormatFromPath(a.output);  // reject a bad extension before the work
     if (!a.png.empty()) ImageFormatFromPath(a.png);
@@ -78,22 +71,22 @@ void RunRender(RenderArgs& a) {
     v1::RenderJob& r = *spec.mutable_render();
     r.set_width(a.width);
     r.set_height(a.height);
-    *r.mutable_view() = ToProto(ParseVec3(a.view, "--view"));
+    *r.mutable_view() = worker::ToProto(ParseVec3(a.view, "--view"));
     v1::Camera& cam = *r.mutable_camera();
     cam.set_fovy_deg(a.fovy);
-    if (!a.eye.empty()) *cam.mutable_eye() = ToProto(ParseVec3(a.eye, "--eye"));
-    if (!a.target.empty()) *cam.mutable_target() = ToProto(ParseVec3(a.target, "--target"));
-    if (!a.up.empty()) *cam.mutable_up() = ToProto(ParseVec3(a.up, "--up"));
+    if (!a.eye.empty()) *cam.mutable_eye() = worker::ToProto(ParseVec3(a.eye, "--eye"));
+    if (!a.target.empty()) *cam.mutable_target() = worker::ToProto(ParseVec3(a.target, "--target"));
+    if (!a.up.empty()) *cam.mutable_up() = worker::ToProto(ParseVec3(a.up, "--up"));
     for (const auto& text : a.lights) {
         const Light L = ParseLight(text);
         v1::Light& l = *r.add_lights();
         l.set_kind(L.kind == Light::Kind::kPoint ? v1::Light::POINT : v1::Light::DIRECTIONAL);
-        *l.mutable_vector() = ToProto(L.vector);
+        *l.mutable_vector() = worker::ToProto(L.vector);
         l.set_intensity(L.intensity);
     }
     r.set_no_shadows(a.no_shadows);
     r.set_samples_per_pixel(a.spp);
-    *r.mutable_background() = ToProto(ParseVec3(a.background, "--background"));
+    *r.mutable_background() = worker::ToProto(ParseVec3(a.background, "--background"));
     r.set_h(a.h);
     r.set_precision(a.precision);
     r.set_degree(static_cast<v1::RenderJob::Degree>(a.degree + 1));  // --degree 0..2

@@ -2,6 +2,7 @@
 #include <ctime>
 
 #include "cli_common.h"
+#include "job_exec.h"
 #include "service_client.h"
 #include "surfel/io/ply.h"
 
@@ -67,11 +68,8 @@ void RegisterServiceCommands(CLI::App& app) {
                     "Example:\n  surfel upload bunny.ply --server localhost:50051 --json");
         sub->callback([a] {
             client::ServiceClient c(a->server);
-            const ProgressFn bar = MakeProgressBar("upload", a->flags);
             Stopwatch watch;
-            const v1::Cloud cloud = c.UploadFile(a->input, [&](std::uint64_t done, std::uint64_t total) {
-                if (bar) bar(total ? double(done) / double(total) : 1.0);
-            });
+            const v1::Cloud cloud = c.UploadFile(a->input, ByteProgressBar("upload", a->flags));
             const double ms = watch.ElapsedMs();
             PrintReport({{"cloud_id", cloud.id()},
                          {"points", cloud.points()},
@@ -162,10 +160,7 @@ void RegisterServiceCommands(CLI::App& app) {
         AddServer(sub, a.get());
         sub->callback([a] {
             client::ServiceClient c(a->server);
-            const ProgressFn bar = MakeProgressBar("download", a->flags);
-            const std::string bytes = c.Download(a->id, [&](std::uint64_t done, std::uint64_t total) {
-                if (bar) bar(total ? double(done) / double(total) : 1.0);
-            });
+            const std::string bytes = c.Download(a->id, ByteProgressBar("download", a->flags));
             WriteFileBytes(a->output, bytes);
             PrintReport({{"job_id", a->id}, {"output", a->output}, {"size_bytes", bytes.size()}}, a->flags);
         });

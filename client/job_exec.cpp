@@ -4,18 +4,20 @@
 #include "surfel/base/error.h"
 #include "surfel/io/ply.h"
 #include "surfel/worker/job_runner.h"
+#include "surfel/worker/status.h"
 
 namespace surfel::cli {
+client::ByteProgress ByteProgressBar(const std::string& label, const CommonFlags& flags) {
+    const ProgressFn bar = MakeProgressBar(label, flags);
+    if (!bar) return {};
+    return [bar](std::uint64_t done, std::uint64_t total) { bar(total ? double(done) / double(total) : 1.0); };
+}
+
 namespace {
 
 void SetCloudId(v1::JobSpec& spec, const std::string& id) {
     if (spec.has_render()) spec.mutable_render()->set_cloud_id(id);
     if (spec.has_simplify()) spec.mutable_simplify()->set_cloud_id(id);
-}
-
-client::ByteProgress Bytes(const ProgressFn& bar) {
-    if (!bar) return {};
-    return [bar](std::uint64_t done, std::uint64_t total) { bar(total ? double(done) / double(total) : 1.0); };
 }
 
 }  // namespace
@@ -51,7 +53,7 @@ nlohmann::json ExecuteJob(v1::JobSpec spec, const std::string& input, const std:
     }
 
     client::ServiceClient client(job_flags.server);
-    const v1::Cloud cloud = client.UploadFile(input, Bytes(MakeProgressBar("upload", flags)));
+    const v1::Cloud cloud = client.UploadFile(input, ByteProgressBar("upload", flags));
     SetCloudId(spec, cloud.id());
     const v1::Job job = client.Submit(spec);
     if (job_flags.detach)
@@ -63,16 +65,9 @@ nlohmann::json ExecuteJob(v1::JobSpec spec, const std::string& input, const std:
         [&](const std::string&, double f) {
             if (bar) bar(f);
         },
-        {}, Bytes(MakeProgressBar("download", flags)));
+        {}, ByteProgressBar("download", flags));
     if (done.state != v1::SUCCEEDED) {
-        const ErrorCode code = done.status_code == grpc::StatusCode::CANCELLED           ? ErrorCode::kCancelled
-                               : done.status_code == grpc::StatusCode::DEADLINE_EXCEEDED ? ErrorCode::kDeadlineExceeded
-                               : done.status_code == grpc::StatusCode::INVALID_ARGUMENT  ? ErrorCode::kInvalidArgument
-                               : done.status_code == grpc::StatusCode::NOT_FOUND         ? ErrorCode::kNotFound
-                               : done.status_code == grpc::StatusCode::RESOURCE_EXHAUSTED
-                                   ? ErrorCode::kResourceExhausted
-                                   : ErrorCode::kInternal;
-        throw Error(code, "job " + job.id() + " " + v1::JobState_Name(done.state) + ": " + done.status_message);
+        throw Error(worker::FromStatusCode(done.status_code), "job " + job.id() + " " + v1::JobState_Name(done.state) + ": " + done.status_message);
     }
     WriteFileBytes(output, done.bytes);
     nlohmann::json report = nlohmann::json::parse(done.result.report_json());

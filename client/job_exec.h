@@ -9,6 +9,7 @@
 #include <string>
 
 #include "cli_common.h"
+#include "service_client.h"
 #include "surfel/v1/surfel.pb.h"
 
 namespace surfel::cli {
@@ -19,6 +20,9 @@ struct JobFlags {
     double timeout_s = 0;   ///< > 0: the job fails with DEADLINE_EXCEEDED past it
     bool detach = false;    ///< --server only: submit and print the job id without waiting
 };
+
+/// A progress bar for byte transfers (upload, download); empty when quiet or not a terminal.
+client::ByteProgress ByteProgressBar(const std::string& label, const CommonFlags& flags);
 
 /// Adds --server, --timeout and --detach.
 void AddJobFlags(CLI::App* sub, JobFlags* flags);

@@ -1,10 +1,10 @@
 #include "service_client.h"
 
-#include <openssl/evp.h>
-
 #include <chrono>
 #include <filesystem>
 #include <fstream>
+
+#include "surfel/worker/sha256.h"
 
 namespace surfel::client {
 namespace {
@@ -39,24 +39,21 @@ void Check(const grpc::Status& status, const std::string& call) {
 std::string FileSha256(const std::string& path) {
     std::ifstream in(path, std::ios::binary);
     if (!in) throw std::runtime_error(path + ": cannot open");
-    EVP_MD_CTX* ctx = EVP_MD_CTX_new();
-    EVP_DigestInit_ex(ctx, EVP_sha256(), nullptr);
+    worker::Sha256 hash;
     std::string buf(1 << 20, '\0');
     while (in) {
         in.read(buf.data(), static_cast<std::streamsize>(buf.size()));
-        EVP_DigestUpdate(ctx, buf.data(), static_cast<std::size_t>(in.gcount()));
+        hash.Update(std::string_view(buf.data(), static_cast<std::size_t>(in.gcount())));
     }
-    unsigned char digest[EVP_MAX_MD_SIZE];
-    unsigned int len = 0;
-    EVP_DigestFinal_ex(ctx, digest, &len);
-    EVP_MD_CTX_free(ctx);
-    static const char* hex = "0123456789abcdef";
-    std::string out;
-    for (unsigned int i = 0; i < len; ++i) {
-        out += hex[digest[i] >> 4];
-        out += hex[digest[i] & 15];
-    }
-    return out;
+    return hash.FinishHex();
+}
+
+// One unary call with the client's deadline: the status, and the response in *resp.
+template <typename Req, typename Resp, typename Method>
+grpc::Status CallUnary(v1::Surfel::Stub* stub, Method method, const Req& req, Resp* resp, double timeout_s) {
+    grpc::ClientContext ctx;
+    ctx.set_deadline(std::chrono::system_clock::now() + std::chrono::milliseconds(static_cast<std::int64_t>(timeout_s * 1000)));
+    return (stub->*method)(&ctx, req, resp);
 }
 
 }  // namespace
@@ -71,19 +68,11 @@ ServiceClient::ServiceClient(const std::string& target, double timeout_s) : targ
     stub_ = v1::Surfel::NewStub(channel_);
 }
 
-void ServiceClient::Prepare(grpc::ClientContext& ctx) const {
-    ctx.set_deadline(std::chrono::system_clock::now() +
-                     std::chrono::milliseconds(static_cast<std::int64_t>(timeout_s_ * 1000)));
-    ctx.set_wait_for_ready(false);
-}
-
 v1::Cloud ServiceClient::GetCloud(const std::string& id) {
-    grpc::ClientContext ctx;
-    Prepare(ctx);
     v1::GetCloudRequest req;
     req.set_cloud_id(id);
     v1::Cloud c;
-    Check(stub_->GetCloud(&ctx, req, &c), "GetCloud");
+    Check(CallUnary(stub_.get(), &v1::Surfel::Stub::GetCloud, req, &c, timeout_s_), "GetCloud");
     return c;
 }
 
@@ -91,12 +80,10 @@ v1::Cloud ServiceClient::UploadFile(const std::string& path, const ByteProgress&
     const std::uint64_t total = std::filesystem::file_size(path);
     const std::string sha = FileSha256(path);
     {  // already there: nothing to send
-        grpc::ClientContext ctx;
-        Prepare(ctx);
         v1::GetCloudRequest req;
         req.set_cloud_id(sha);
         v1::Cloud c;
-        if (stub_->GetCloud(&ctx, req, &c).ok()) {
+        if (CallUnary(stub_.get(), &v1::Surfel::Stub::GetCloud, req, &c, timeout_s_).ok()) {
             c.set_deduplicated(true);
             if (progress) progress(total, total);
             return c;
@@ -104,12 +91,10 @@ v1::Cloud ServiceClient::UploadFile(const std::string& path, const ByteProgress&
     }
     std::uint64_t offset = 0;
     {
-        grpc::ClientContext ctx;
-        Prepare(ctx);
         v1::QueryUploadRequest req;
         req.set_upload_id(sha);
         v1::QueryUploadResponse resp;
-        Check(stub_->QueryUpload(&ctx, req, &resp), "QueryUpload");
+        Check(CallUnary(stub_.get(), &v1::Surfel::Stub::QueryUpload, req, &resp, timeout_s_), "QueryUpload");
         offset = static_cast<std::uint64_t>(resp.committed_size());
         if (offset > total) offset = 0;  // a different file under this id cannot happen (same hash)
     }
@@ -143,12 +128,10 @@ v1::Cloud ServiceClient::UploadFile(const std::string& path, const ByteProgress&
 }
 
 v1::Job ServiceClient::Submit(const v1::JobSpec& spec) {
-    grpc::ClientContext ctx;
-    Prepare(ctx);
     v1::SubmitRequest req;
     *req.mutable_spec() = spec;
     v1::Job job;
-    Check(stub_->Submit(&ctx, req, &job), "Submit");
+    Check(CallUnary(stub_.get(), &v1::Surfel::Stub::Submit, req, &job, timeout_s_), "Submit");
     return job;
 }
 
@@ -209,43 +192,35 @@ std::string ServiceClient::Download(const std::string& job_id, const ByteProgres
 }
 
 v1::Job ServiceClient::Cancel(const std::string& job_id) {
-    grpc::ClientContext ctx;
-    Prepare(ctx);
     v1::CancelRequest req;
     req.set_job_id(job_id);
     v1::Job job;
-    Check(stub_->Cancel(&ctx, req, &job), "Cancel");
+    Check(CallUnary(stub_.get(), &v1::Surfel::Stub::Cancel, req, &job, timeout_s_), "Cancel");
     return job;
 }
 
 v1::Job ServiceClient::GetJob(const std::string& job_id) {
-    grpc::ClientContext ctx;
-    Prepare(ctx);
     v1::GetJobRequest req;
     req.set_job_id(job_id);
     v1::Job job;
-    Check(stub_->GetJob(&ctx, req, &job), "GetJob");
+    Check(CallUnary(stub_.get(), &v1::Surfel::Stub::GetJob, req, &job, timeout_s_), "GetJob");
     return job;
 }
 
 std::vector<v1::Job> ServiceClient::ListJobs(std::uint32_t limit, v1::JobState state) {
-    grpc::ClientContext ctx;
-    Prepare(ctx);
     v1::ListJobsRequest req;
     req.set_limit(limit);
     req.set_state(state);
     v1::ListJobsResponse resp;
-    Check(stub_->ListJobs(&ctx, req, &resp), "ListJobs");
+    Check(CallUnary(stub_.get(), &v1::Surfel::Stub::ListJobs, req, &resp, timeout_s_), "ListJobs");
     return {resp.jobs().begin(), resp.jobs().end()};
 }
 
 bool ServiceClient::DeleteCloud(const std::string& id) {
-    grpc::ClientContext ctx;
-    Prepare(ctx);
     v1::DeleteCloudRequest req;
     req.set_cloud_id(id);
     v1::DeleteCloudResponse resp;
-    Check(stub_->DeleteCloud(&ctx, req, &resp), "DeleteCloud");
+    Check(CallUnary(stub_.get(), &v1::Surfel::Stub::DeleteCloud, req, &resp, timeout_s_), "DeleteCloud");
     return resp.deleted();
 }
 

@@ -62,7 +62,6 @@ public:
     const std::string& target() const { return target_; }
 
 private:
-    void Prepare(grpc::ClientContext& ctx) const;
     std::string target_;
     double timeout_s_;
     std::shared_ptr<grpc::Channel> channel_;

@@ -12,6 +12,7 @@
 
 #include "surfel/base/error.h"
 #include "surfel/io/ply.h"
+#include "surfel/worker/job_runner.h"
 #include "surfel/worker/status.h"
 
 namespace surfel::server {
@@ -28,14 +29,6 @@ void CheckUploadId(const std::string& id) {
         return std::isalnum(static_cast<unsigned char>(c)) || c == '_' || c == '-';
     });
     if (!ok) throw Error(ErrorCode::kInvalidArgument, "upload_id: must match [A-Za-z0-9_-]{1,128}");
-}
-
-v1::Vec3 ToProto(const Vec3f& v) {
-    v1::Vec3 p;
-    p.set_x(v.x());
-    p.set_y(v.y());
-    p.set_z(v.z());
-    return p;
 }
 
 std::string SniffFormat(std::string_view bytes) {
@@ -143,15 +136,16 @@ private:
     void Complete() {
         out_.close();
         const std::string id = hash_.FinishHex();
-        const std::string bytes = ReadFileBytes(path_);
-        if (auto existing = service_.store().FindCloud(id)) {
+        if (auto existing = service_.store().FindCloud(id)) {  // stored before: no need to read it back
+            const std::uint64_t size = committed_;
             Discard();
             *response_ = *existing;
             response_->set_deduplicated(true);
-            spdlog::info("upload {}: {} bytes, already stored as cloud {}", id_, bytes.size(), id);
+            spdlog::info("upload {}: {} bytes, already stored as cloud {}", id_, size, id);
             service_.metrics().CountUpload(true);
             return;
         }
+        const std::string bytes = ReadFileBytes(path_);
         PointCloud cloud;
         try {
             PlyReadOptions limits;
@@ -170,8 +164,8 @@ private:
         c.set_id(id);
         c.set_points(cloud.size());
         const BoundingBox box = cloud.Bounds();
-        *c.mutable_bounds_min() = ToProto(box.min);
-        *c.mutable_bounds_max() = ToProto(box.max);
+        *c.mutable_bounds_min() = worker::ToProto(box.min.cast<double>());
+        *c.mutable_bounds_max() = worker::ToProto(box.max.cast<double>());
         for (const std::string& a : cloud.AttributeNames()) c.add_attributes(a);
         c.set_size_bytes(bytes.size());
         c.set_format(SniffFormat(bytes));

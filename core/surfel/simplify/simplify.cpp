@@ -67,6 +67,8 @@ PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> nor
         return input_tree->Nearest(p).index;
     };
 
+    std::unique_ptr<KdTree> out_tree;  // over the representatives: normals (when estimated) and radii
+    if (m >= 2) out_tree = std::make_unique<KdTree>(out.positions);
     if (!normals.empty()) {
         out.normals.resize(m);
         for (std::size_t c = 0; c < m; ++c) {
@@ -75,11 +77,10 @@ PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> nor
                                                                     : normals[nearest_input(out.positions[c])];
         }
     } else if (m >= 3) {
-        const KdTree out_tree(out.positions);
         NormalOptions no;
         no.k = std::min<int>(16, static_cast<int>(m) - 1);
         no.orient_k = std::min<int>(10, static_cast<int>(m) - 1);
-        out.normals = EstimateNormals(out_tree, no).normals;
+        out.normals = EstimateNormals(*out_tree, no).normals;
     } else {
         out.normals.assign(m, Vec3f::UnitZ());
     }
@@ -106,9 +107,8 @@ PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> nor
         cover[c] = std::max(cover[c], d.norm());
     }
     out.radii.resize(m);
-    if (m >= 2) {
-        const KdTree out_tree(out.positions);
-        const KnnTable nn = out_tree.KnnAll(1);
+    if (out_tree) {
+        const KnnTable nn = out_tree->KnnAll(1);
         for (std::size_t c = 0; c < m; ++c) out.radii[c] = std::max(cover[c], std::sqrt(nn.Dist2(c)[0]));
     } else {
         out.radii = cover;

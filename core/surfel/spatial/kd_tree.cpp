@@ -95,10 +95,27 @@ void KdTree::Radius(const Vec3f& q, float radius, std::vector<Neighbor>* out) co
     if (impl_->tree) impl_->tree->findNeighbors(c, q.data(), impl_->params);
 }
 
+namespace {
+// The single nearest point, held in place (Nearest runs once per point in several hot loops).
+class NearestCollector : public flann::ResultSet<float> {
+public:
+    bool full() const override { return best_.index != UINT32_MAX; }
+    float worstDist() const override { return best_.dist2; }
+    void addPoint(float dist, std::size_t index) override {
+        const auto idx = static_cast<std::uint32_t>(index);
+        if (dist < best_.dist2 || (dist == best_.dist2 && idx < best_.index)) best_ = {idx, dist};
+    }
+    Neighbor best() const { return best_; }
+
+private:
+    Neighbor best_{UINT32_MAX, std::numeric_limits<float>::infinity()};
+};
+}  // namespace
+
 Neighbor KdTree::Nearest(const Vec3f& q) const {
-    std::vector<Neighbor> out;
-    Knn(q, 1, &out);
-    return out.empty() ? Neighbor{UINT32_MAX, std::numeric_limits<float>::infinity()} : out[0];
+    NearestCollector c;
+    if (impl_->tree) impl_->tree->findNeighbors(c, q.data(), impl_->params);
+    return c.best();
 }
 
 namespace {

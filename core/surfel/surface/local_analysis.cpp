@@ -16,6 +16,13 @@
 
 namespace surfel {
 
+namespace {
+// eta = 1 / sqrt(rho) with rho = k / (pi r^2) (notes 1.1.1): the spacing of k samples in a disc of radius r.
+float SpacingFromRadius(float r, int k) {
+    return r > 0 ? static_cast<float>(std::sqrt(std::numbers::pi * double(r) * r / k)) : 0.0f;
+}
+}  // namespace
+
 SamplingDensity ComputeSamplingDensity(const KdTree& tree, int k, const ProgressFn& progress) {
     SURFEL_CHECK(k > 0);
     SamplingDensity d;
@@ -29,7 +36,7 @@ SamplingDensity ComputeSamplingDensity(const KdTree& tree, int k, const Progress
         const float r = std::sqrt(knn.Dist2(i)[knn.k - 1]);
         d.radius[i] = r;
         d.density[i] = r > 0 ? static_cast<float>(knn.k / (std::numbers::pi * r * r)) : std::numeric_limits<float>::infinity();
-        d.spacing[i] = r > 0 ? 1.0f / std::sqrt(d.density[i]) : 0.0f;
+        d.spacing[i] = SpacingFromRadius(r, knn.k);
     }
     std::vector<float> s = d.spacing;
     std::nth_element(s.begin(), s.begin() + s.size() / 2, s.end());
@@ -48,8 +55,7 @@ float MedianSpacing(const KdTree& tree, int k, std::size_t max_samples) {
     const KnnTable knn = tree.KnnBatch(queries, kk + 1);  // the query point itself comes first
     std::vector<float> spacing(queries.size());
     for (std::size_t i = 0; i < queries.size(); ++i) {
-        const float r2 = knn.Dist2(i)[kk];
-        spacing[i] = r2 > 0 ? static_cast<float>(std::sqrt(std::numbers::pi * r2 / kk)) : 0.0f;  // 1/sqrt(rho)
+        spacing[i] = SpacingFromRadius(std::sqrt(knn.Dist2(i)[kk]), kk);
     }
     std::nth_element(spacing.begin(), spacing.begin() + spacing.size() / 2, spacing.end());
     return spacing[spacing.size() / 2];

@@ -149,19 +149,21 @@ v1::Job JobManager::Submit(const v1::JobSpec& spec) {
     return job;
 }
 
-std::optional<v1::Job> JobManager::Get(const std::string& id) const {
-    {
-        std::lock_guard lock(mutex_);
-        if (auto it = running_.find(id); it != running_.end()) return it->second->job;
-    }
+std::optional<v1::Job> JobManager::Current(const std::string& id) const {
+    if (auto it = running_.find(id); it != running_.end()) return it->second->job;
     return store_.FindJob(id);
+}
+
+std::optional<v1::Job> JobManager::Get(const std::string& id) const {
+    std::lock_guard lock(mutex_);
+    return Current(id);
 }
 
 std::vector<v1::Job> JobManager::List(std::size_t limit, v1::JobState state) const {
     std::vector<v1::Job> jobs = store_.ListJobs(limit ? limit : 100, state);
     std::lock_guard lock(mutex_);
     for (v1::Job& j : jobs)
-        if (auto it = running_.find(j.id()); it != running_.end()) j = it->second->job;
+        if (auto it = running_.find(j.id()); it != running_.end()) j = it->second->job;  // live progress
     return jobs;
 }
 
@@ -189,9 +191,7 @@ v1::Job JobManager::Cancel(const std::string& id) {
 
 std::optional<v1::Job> JobManager::Subscribe(const std::string& id, JobListener listener, std::uint64_t* token) {
     std::lock_guard lock(mutex_);
-    std::optional<v1::Job> job;
-    if (auto it = running_.find(id); it != running_.end()) job = it->second->job;
-    else job = store_.FindJob(id);
+    std::optional<v1::Job> job = Current(id);
     if (!job) return std::nullopt;
     if (IsFinal(job->state())) return job;
     *token = next_token_++;

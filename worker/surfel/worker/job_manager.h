@@ -78,6 +78,7 @@ private:
     void Transition(v1::Job& job, v1::JobState to);  ///< persists, notifies, calls the hook (lock held)
     void Notify(const std::string& id, const v1::JobEvent& event);  ///< lock held
     void NotifyQueuePositions();  ///< lock held
+    std::optional<v1::Job> Current(const std::string& id) const;  ///< live copy or stored; lock held
 
     Store& store_;
     ManagerOptions options_;

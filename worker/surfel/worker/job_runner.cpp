@@ -26,13 +26,21 @@ void CheckFinite(const std::string& field, const v1::Vec3& v) {
     if (!std::isfinite(v.x()) || !std::isfinite(v.y()) || !std::isfinite(v.z())) Bad(field, "must be finite");
 }
 
-Vec3d ToVec(const v1::Vec3& v) { return {v.x(), v.y(), v.z()}; }
-
 void CheckCloudId(const std::string& field, const std::string& id) {
     if (id.empty()) Bad(field, "is required");
 }
 
 }  // namespace
+
+v1::Vec3 ToProto(const Vec3d& v) {
+    v1::Vec3 p;
+    p.set_x(v.x());
+    p.set_y(v.y());
+    p.set_z(v.z());
+    return p;
+}
+
+Vec3d FromProto(const v1::Vec3& v) { return {v.x(), v.y(), v.z()}; }
 
 std::string JobType(const v1::JobSpec& spec) {
     switch (spec.job_case()) {
@@ -73,7 +81,7 @@ void ValidateSpec(const v1::JobSpec& spec) {
             CheckFinite("render.camera.up", r.camera().up());
             if (r.camera().fovy_deg() != 0) CheckRange("render.camera.fovy_deg", r.camera().fovy_deg(), 1, 179);
             if (r.camera().has_eye() && r.camera().has_target() &&
-                ToVec(r.camera().eye()) == ToVec(r.camera().target()))
+                FromProto(r.camera().eye()) == FromProto(r.camera().target()))
                 Bad("render.camera", "eye and target must differ");
         }
         if (r.lights_size() > 64) Bad("render.lights", "at most 64 lights");
@@ -82,7 +90,7 @@ void ValidateSpec(const v1::JobSpec& spec) {
             CheckFinite(f + ".vector", r.lights(i).vector());
             CheckFinite(f + ".color", r.lights(i).color());
             CheckRange(f + ".intensity", r.lights(i).intensity(), 0, 1e6);
-            if (r.lights(i).kind() == v1::Light::DIRECTIONAL && ToVec(r.lights(i).vector()).norm() == 0)
+            if (r.lights(i).kind() == v1::Light::DIRECTIONAL && FromProto(r.lights(i).vector()).norm() == 0)
                 Bad(f + ".vector", "a directional light needs a non-zero direction");
         }
         if (!v1::RenderJob::Format_IsValid(r.format())) Bad("render.format", "unknown format");
@@ -104,27 +112,27 @@ void ValidateSpec(const v1::JobSpec& spec) {
 RenderOptions ToRenderOptions(const v1::RenderJob& job, const PointCloud& cloud) {
     RenderOptions o;
     const int width = job.width() ? job.width() : 512, height = job.height() ? job.height() : 512;
-    Vec3d view = ToVec(job.view());
+    Vec3d view = FromProto(job.view());
     if (view.norm() == 0) view = Vec3d(0, 0, 1);
     const double fovy = job.has_camera() && job.camera().fovy_deg() != 0 ? job.camera().fovy_deg() : 40.0;
     o.camera = Camera::Framing(cloud.Bounds(), width, height, view, fovy);
     if (job.has_camera()) {
         const v1::Camera& c = job.camera();
-        if (c.has_eye()) o.camera.eye = ToVec(c.eye());
-        if (c.has_target()) o.camera.target = ToVec(c.target());
-        if (c.has_up()) o.camera.up = ToVec(c.up());
+        if (c.has_eye()) o.camera.eye = FromProto(c.eye());
+        if (c.has_target()) o.camera.target = FromProto(c.target());
+        if (c.has_up()) o.camera.up = FromProto(c.up());
     }
     for (const v1::Light& l : job.lights()) {
         Light L;
         L.kind = l.kind() == v1::Light::POINT ? Light::Kind::kPoint : Light::Kind::kDirectional;
-        L.vector = ToVec(l.vector());
-        if (l.has_color()) L.color = ToVec(l.color());
+        L.vector = FromProto(l.vector());
+        if (l.has_color()) L.color = FromProto(l.color());
         if (l.intensity() != 0) L.intensity = l.intensity();
         o.lights.push_back(L);
     }
     o.shadows = !job.no_shadows();
     o.samples_per_pixel = job.samples_per_pixel() ? job.samples_per_pixel() : 1;
-    o.background = ToVec(job.background());
+    o.background = FromProto(job.background());
     o.surface.h = static_cast<float>(job.h());
     o.surface.precision = static_cast<float>(job.precision());
     if (job.degree() != v1::RenderJob::DEGREE_UNSPECIFIED) o.surface.degree = static_cast<int>(job.degree()) - 1;

@@ -29,6 +29,10 @@ struct JobOutput {
 /// Gives the cloud a job names (by id). Throws Error(kNotFound) for an unknown id.
 using CloudLoader = std::function<PointCloud(const std::string& cloud_id)>;
 
+/// A point or direction as the proto's Vec3, and back.
+v1::Vec3 ToProto(const Vec3d& v);
+Vec3d FromProto(const v1::Vec3& v);
+
 /// "render" or "simplify"; throws Error(kInvalidArgument) for an empty spec.
 std::string JobType(const v1::JobSpec& spec);
 /// The cloud ids a job reads.

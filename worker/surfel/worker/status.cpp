@@ -18,6 +18,14 @@ grpc::StatusCode ToStatusCode(ErrorCode code) {
     return grpc::StatusCode::INTERNAL;
 }
 
+ErrorCode FromStatusCode(int code) {
+    for (ErrorCode c : {ErrorCode::kInvalidArgument, ErrorCode::kNotFound, ErrorCode::kResourceExhausted,
+                        ErrorCode::kCancelled, ErrorCode::kDeadlineExceeded, ErrorCode::kUnavailable,
+                        ErrorCode::kFailedPrecondition})
+        if (static_cast<int>(ToStatusCode(c)) == code) return c;
+    return ErrorCode::kInternal;
+}
+
 grpc::Status ToStatus(const std::exception& e) {
     if (const auto* err = dynamic_cast<const Error*>(&e)) return {ToStatusCode(err->code()), err->what()};
     return {grpc::StatusCode::INTERNAL, std::string("internal error: ") + e.what()};

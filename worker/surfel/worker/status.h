@@ -15,6 +15,9 @@ namespace surfel::worker {
 /// RESOURCE_EXHAUSTED, kCancelled -> CANCELLED, kDeadlineExceeded -> DEADLINE_EXCEEDED,
 /// kUnavailable -> UNAVAILABLE, kFailedPrecondition -> FAILED_PRECONDITION, kInternal -> INTERNAL.
 grpc::StatusCode ToStatusCode(ErrorCode code);
+/// The inverse, for a client that reports a failed job as a core error (codes with no core
+/// counterpart become kInternal).
+ErrorCode FromStatusCode(int code);
 
 /// The status for an exception caught at a handler boundary: surfel::Error by its code and
 /// message; anything else is INTERNAL ("internal error: ..."), a bug.

@@ -15,6 +15,7 @@
 #include <vector>
 
 #include "surfel/v1/surfel.pb.h"
+#include "surfel/worker/sha256.h"
 
 namespace surfel::worker {
 
@@ -51,21 +52,6 @@ private:
     struct Impl;
     std::string data_dir_;
     std::unique_ptr<Impl> impl_;
-};
-
-/// Lower-case hex SHA-256 of bytes (OpenSSL), and an incremental hasher.
-std::string Sha256Hex(std::string_view bytes);
-class Sha256 {
-public:
-    Sha256();
-    ~Sha256();
-    Sha256(const Sha256&) = delete;
-    Sha256& operator=(const Sha256&) = delete;
-    void Update(std::string_view bytes);
-    std::string FinishHex();
-
-private:
-    void* ctx_;
 };
 
 /// Milliseconds since the Unix epoch.
