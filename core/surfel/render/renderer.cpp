@@ -91,7 +91,8 @@ void IntersectFn(const RTCIntersectFunctionNArguments* args) {
     const Vec3d o(rh->ray.org_x, rh->ray.org_y, rh->ray.org_z), d(rh->ray.dir_x, rh->ray.dir_y, rh->ray.dir_z);
     double t0, t1, gamma;
     if (!BallInterval(*s, args->primID, o, d, rh->ray.tnear, rh->ray.tfar, &t0, &t1, &gamma)) return;
-    auto hit = s->surface->IntersectInBall(args->primID, o, d, t0, t1, &ctx->counters);
+    auto hit = s->surface->IntersectInBall(args->primID, o, d, t0, t1, &ctx->counters,
+                                           ctx->hit ? ctx->hit->t : std::numeric_limits<double>::infinity());
     if (!hit || hit->t >= rh->ray.tfar) return;
     rh->ray.tfar = static_cast<float>(hit->t);
     rh->hit.Ng_x = static_cast<float>(hit->normal.x());

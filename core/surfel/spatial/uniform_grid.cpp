@@ -16,6 +16,47 @@ UniformGrid::UniformGrid(std::span<const Vec3f> points, float cell) : cell_(cell
     if (!box.empty() && (box.Extent() / cell).maxCoeff() > float(1 << 20))
         throw Error(ErrorCode::kInvalidArgument, "grid cell size " + std::to_string(cell) + " is too small for the cloud's extent");
     const std::size_t n = points.size();
+    if (!box.empty()) {
+        fine_ = cell / kSubdivision;
+        std::uint64_t total = 1;
+        for (int a = 0; a < 3; ++a) {
+            dims_[a] = static_cast<int>(std::floor(box.Extent()[a] / fine_)) + 1;
+            total *= static_cast<std::uint64_t>(dims_[a]);
+            if (total > 8 * n + 4096) break;
+        }
+        dense_ = total <= 8 * n + 4096;
+    }
+    if (dense_) BuildDense(points);
+    else BuildSparse(points);
+}
+
+void UniformGrid::BuildDense(std::span<const Vec3f> points) {
+    // Counting sort by cell: x-major, z fastest, so each z-column is contiguous.
+    const std::size_t n = points.size();
+    const std::size_t cells = static_cast<std::size_t>(dims_[0]) * dims_[1] * dims_[2];
+    std::vector<std::uint32_t> cell_of(n);
+    starts_.assign(cells + 1, 0);
+    const float inv = 1.0f / fine_;
+    for (std::size_t i = 0; i < n; ++i) {
+        int c[3];
+        for (int a = 0; a < 3; ++a)
+            c[a] = std::clamp(static_cast<int>(std::floor((points[i][a] - origin_[a]) * inv)), 0, dims_[a] - 1);
+        cell_of[i] = static_cast<std::uint32_t>((static_cast<std::size_t>(c[0]) * dims_[1] + c[1]) * dims_[2] + c[2]);
+        ++starts_[cell_of[i] + 1];
+    }
+    for (std::size_t c = 0; c < cells; ++c) starts_[c + 1] += starts_[c];
+    std::vector<std::uint32_t> fill(starts_.begin(), starts_.end() - 1);
+    order_.resize(n);
+    sorted_.resize(n);
+    for (std::size_t i = 0; i < n; ++i) {
+        const std::uint32_t at = fill[cell_of[i]]++;
+        order_[at] = static_cast<std::uint32_t>(i);
+        sorted_[at] = points[i];
+    }
+}
+
+void UniformGrid::BuildSparse(std::span<const Vec3f> points) {
+    const std::size_t n = points.size();
     std::vector<std::uint64_t> key(n);
     for (std::size_t i = 0; i < n; ++i) {
         const Eigen::Vector3i c = CellOf(points[i]);

@@ -31,12 +31,7 @@ struct AaSurface::Impl {
 };
 
 namespace {
-struct Sample {
-    Vec3d d;  // p_j - r
-    double w;
-    std::uint32_t index;
-};
-thread_local std::vector<Sample> tls_samples;
+thread_local NeighborBatch tls_batch;
 
 // Real roots of A t^2 + B t + C = 0 (numerically stable); returns the count.
 int SolveQuadratic(double A, double B, double C, double* r0, double* r1) {
@@ -101,44 +96,39 @@ float AaSurface::BallRadius(std::uint32_t i) const { return impl_->ball_radius[i
 bool AaSurface::FitAt(const Vec3d& r, Fit* fit) const {
     const AaOptions& o = impl_->opt;
     const PointCloud& cloud = impl_->cloud;
-    const double inv_h2 = 1.0 / (double(o.h) * o.h);
-    auto& s = tls_samples;
-    s.clear();
-    // Step 1, support plane: B = sum theta_j (p_j - r)(p_j - r)^T (eq. 8, 9).
-    Eigen::Matrix3d B = Eigen::Matrix3d::Zero();
-    double wsum = 0;
+    NeighborBatch& nb = tls_batch;
+    nb.clear();
     impl_->grid->ForEachWithin(r.cast<float>(), o.cutoff * o.h, [&](std::uint32_t idx, const Vec3f& p, float) {
-        const Vec3d d = p.cast<double>() - r;
-        const double w = GaussExp(-d.squaredNorm() * inv_h2);
-        s.push_back({d, w, idx});
-        B.noalias() += w * d * d.transpose();
-        wsum += w;
+        nb.Push(idx, p.cast<double>() - r);
     });
     fit->valid = false;
-    if (s.size() < 3 || !(wsum > 1e-12)) return false;
+    const std::size_t m = nb.size();
+    if (m < 3) return false;
+    // Step 1, support plane: B = sum theta_j (p_j - r)(p_j - r)^T (eq. 8, 9).
+    nb.Weights(o.h);
+    const WeightedMoments wm = WeightedMoments::Of(nb);
+    if (!(wm.w > 1e-12)) return false;
     Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es;
-    es.computeDirect(B);
+    es.computeDirect(wm.Second());
     const Vec3d lambda = es.eigenvalues();
     if (!(lambda[0] < o.normal_ratio * lambda[1])) return false;  // normal not well defined
     fit->frame = LocalFrame::FromNormal(r, es.eigenvectors().col(0));
     // Step 2, polynomial: minimise sum (a_i(x_j, y_j) - f_j)^2 theta_j (eq. 10).
+    nb.ToLocal(Vec3d::Zero(), fit->frame.u, fit->frame.v, fit->frame.n);
     PolyFit pf(o.degree, o.h);
-    Vec3d nref = Vec3d::Zero();
-    Eigen::Vector4d col = Eigen::Vector4d::Zero();
-    const bool normals = cloud.has_normals(), colors = cloud.has_colors();
-    for (const Sample& smp : s) {
-        const Vec3d l = fit->frame.DirToLocal(smp.d);
-        pf.Add(l.x(), l.y(), l.z(), smp.w);
-        if (normals) nref += smp.w * cloud.normals[smp.index].cast<double>();
-        if (colors) {
-            const auto& c = cloud.colors[smp.index];
-            col += smp.w * Eigen::Vector4d(c[0], c[1], c[2], c[3]);
-        }
-    }
+    pf.AddBatch(nb.lx.data(), nb.ly.data(), nb.lz.data(), nb.w.data(), m);
     if (!pf.Solve(&fit->g)) return false;
+    Vec3d nref = Vec3d::Zero();
+    if (cloud.has_normals())
+        for (std::size_t j = 0; j < m; ++j) nref += double(nb.w[j]) * cloud.normals[nb.index[j]].cast<double>();
     fit->normal_ref = nref;
-    if (colors) {
-        col /= wsum;
+    if (cloud.has_colors()) {
+        Eigen::Vector4d col = Eigen::Vector4d::Zero();
+        for (std::size_t j = 0; j < m; ++j) {
+            const auto& c = cloud.colors[nb.index[j]];
+            col += double(nb.w[j]) * Eigen::Vector4d(c[0], c[1], c[2], c[3]);
+        }
+        col /= wm.w;
         fit->color = {float(col[0]), float(col[1]), float(col[2]), float(col[3])};
     }
     fit->valid = true;
@@ -194,7 +184,7 @@ const AaSurface::Fit* AaSurface::CenterFit(std::uint32_t ball, Fit* local, AaCou
 }
 
 std::optional<AaHit> AaSurface::IntersectInBall(std::uint32_t ball, const Vec3d& o, const Vec3d& d, double tmin,
-                                                double tmax, AaCounters* counters) const {
+                                                double tmax, AaCounters* counters, double known_hit) const {
     const AaOptions& opt = impl_->opt;
     const Vec3d center = impl_->cloud.positions[ball].cast<double>();
     const double rho = impl_->ball_radius[ball];
@@ -210,7 +200,7 @@ std::optional<AaHit> AaSurface::IntersectInBall(std::uint32_t ball, const Vec3d&
     bool found = false;
     if (nroots >= 1 && inside(r0)) { t = r0; found = true; }
     else if (nroots == 2 && inside(r1)) { t = r1; found = true; }
-    if (!found) return std::nullopt;
+    if (!found || t > known_hit - kSameSheet * opt.h) return std::nullopt;
 
     Fit fit;
     for (int it = 0; it < opt.max_iterations; ++it) {

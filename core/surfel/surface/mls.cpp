@@ -40,7 +40,6 @@ struct MlsSurface::Impl {
 
     std::optional<MlsPoint> Project(const Vec3f& xf, std::vector<Neighbor>& nbrs) const {
         const float h = LocalH(xf, nbrs);
-        const double inv_h2 = 1.0 / (double(h) * h);
         if (grid) {
             nbrs.clear();
             grid->ForEachWithin(xf, opt.cutoff * h, [&](std::uint32_t i, const Vec3f&, float d2) {
@@ -53,42 +52,23 @@ struct MlsSurface::Impl {
         if (static_cast<int>(m) < opt.min_neighbors) return std::nullopt;
         const auto pts = tree.points();
         const Vec3d x = xf.cast<double>();
-        // Neighbours relative to x, once (small, well-conditioned numbers), and their weights.
-        thread_local std::vector<Vec3d> rel;
-        thread_local std::vector<double> w;
-        rel.resize(m);
-        w.resize(m);
-        for (std::size_t i = 0; i < m; ++i) rel[i] = pts[nbrs[i].index].cast<double>() - x;
+        // Neighbours relative to x, once (small, well-conditioned numbers), as arrays for the
+        // vectorised kernels.
+        thread_local NeighborBatch nb;
+        nb.clear();
+        for (std::size_t i = 0; i < m; ++i) nb.Push(nbrs[i].index, pts[nbrs[i].index].cast<double>() - x);
         Vec3d q = Vec3d::Zero(), n = Vec3d::Zero();  // q relative to x
         int it = 0;
         bool converged = false;
         for (; it < opt.max_iterations; ++it) {
             // Reference plane (notes 1.3): weighted centroid and covariance around q, in one pass
             // over the first and second moments about x.
-            double ws = 0, sx = 0, sy = 0, sz = 0, sxx = 0, sxy = 0, sxz = 0, syy = 0, syz = 0, szz = 0;
-            const double qx = q.x(), qy = q.y(), qz = q.z();
-            for (std::size_t i = 0; i < m; ++i) {
-                const double dx = rel[i].x(), dy = rel[i].y(), dz = rel[i].z();
-                const double ex = dx - qx, ey = dy - qy, ez = dz - qz;
-                const double wi = GaussExp(-(ex * ex + ey * ey + ez * ez) * inv_h2);
-                w[i] = wi;
-                const double wx = wi * dx, wy = wi * dy, wz = wi * dz;
-                ws += wi;
-                sx += wx;
-                sy += wy;
-                sz += wz;
-                sxx += wx * dx;
-                sxy += wx * dy;
-                sxz += wx * dz;
-                syy += wy * dy;
-                syz += wy * dz;
-                szz += wz * dz;
-            }
-            if (!(ws > 1e-12)) return std::nullopt;
-            const Vec3d c = Vec3d(sx, sy, sz) / ws;
-            Eigen::Matrix3d C;
-            C << sxx, sxy, sxz, sxy, syy, syz, sxz, syz, szz;
-            C -= ws * c * c.transpose();
+            nb.WeightsAround(q, h);
+            const WeightedMoments wm = WeightedMoments::Of(nb);
+            if (!(wm.w > 1e-12)) return std::nullopt;
+            const Vec3d c = Vec3d(wm.x, wm.y, wm.z) / wm.w;
+            Eigen::Matrix3d C = wm.Second();
+            C -= wm.w * c * c.transpose();
             Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es;
             es.computeDirect(C);
             Vec3d nn = es.eigenvectors().col(0).normalized();
@@ -107,12 +87,10 @@ struct MlsSurface::Impl {
         // Polynomial over the plane, weights centred at q. Once converged, the last iteration's
         // weights are those (centred within tolerance * h of q) and are reused.
         const LocalFrame frame = LocalFrame::FromNormal(q, n);
+        if (!converged) nb.WeightsAround(q, h);
+        nb.ToLocal(q, frame.u, frame.v, frame.n);
         PolyFit fit(opt.degree, h);
-        for (std::size_t i = 0; i < m; ++i) {
-            if (!converged) w[i] = GaussExp(-(rel[i] - q).squaredNorm() * inv_h2);
-            const Vec3d l = frame.ToLocal(rel[i]);
-            fit.Add(l.x(), l.y(), l.z(), w[i]);
-        }
+        fit.AddBatch(nb.lx.data(), nb.ly.data(), nb.lz.data(), nb.w.data(), m);
         PolyCoeffs g;
         if (!fit.Solve(&g)) return std::nullopt;
         MlsPoint out;
@@ -121,7 +99,7 @@ struct MlsSurface::Impl {
         // Orientation: agree with the cloud's normals where it has them.
         if (cloud.has_normals()) {
             Vec3d avg = Vec3d::Zero();
-            for (std::size_t i = 0; i < m; ++i) avg += w[i] * cloud.normals[nbrs[i].index].cast<double>();
+            for (std::size_t i = 0; i < m; ++i) avg += double(nb.w[i]) * cloud.normals[nb.index[i]].cast<double>();
             if (normal.dot(avg) < 0) normal = -normal;
         }
         out.normal = normal.cast<float>();

@@ -1,6 +1,7 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <limits>
 #include <random>
 
 #include "surfel/base/shapes.h"
@@ -89,16 +90,49 @@ TEST(KdTree, FewerPointsThanK) {
     EXPECT_EQ(empty.Nearest({0, 0, 0}).index, UINT32_MAX);
 }
 
-TEST_F(KdTreeTest, UniformGridMatchesBruteForce) {
-    UniformGrid grid(cloud_.positions, 0.2f);
-    for (const auto& q : queries_) {
-        std::vector<std::uint32_t> a, b;
-        grid.ForEachWithin(q, 0.2f, [&](std::uint32_t i, const Vec3f&, float) { a.push_back(i); });
-        for (std::size_t i = 0; i < cloud_.size(); ++i)
-            if ((cloud_.positions[i] - q).squaredNorm() <= 0.04f) b.push_back(std::uint32_t(i));
-        std::sort(a.begin(), a.end());
-        EXPECT_EQ(a, b);
-    }
+std::vector<std::uint32_t> GridWithin(const UniformGrid& grid, const Vec3f& q, float r) {
+    std::vector<std::uint32_t> a;
+    grid.ForEachWithin(q, r, [&](std::uint32_t i, const Vec3f&, float) { a.push_back(i); });
+    std::sort(a.begin(), a.end());
+    return a;
+}
+
+std::vector<std::uint32_t> BruteWithin(std::span<const Vec3f> pts, const Vec3f& q, float r) {
+    std::vector<std::uint32_t> b;
+    for (std::size_t i = 0; i < pts.size(); ++i)
+        if ((pts[i] - q).squaredNorm() <= r * r) b.push_back(std::uint32_t(i));
+    return b;
+}
+
+TEST_F(KdTreeTest, UniformGridMatchesBruteForceInBothLayouts) {
+    // A compact torus gets the dense layout; the same torus beside a far outlier the sparse one.
+    std::vector<Vec3f> sparse_pts = cloud_.positions;
+    sparse_pts.emplace_back(1000.0f, 1000.0f, 1000.0f);
+    const UniformGrid dense(cloud_.positions, 0.3f), sparse(sparse_pts, 0.3f);
+    ASSERT_TRUE(dense.dense());
+    ASSERT_FALSE(sparse.dense());
+    for (const float r : {0.3f, 0.17f, 0.05f})
+        for (const auto& q : queries_) {
+            EXPECT_EQ(GridWithin(dense, q, r), BruteWithin(cloud_.positions, q, r)) << "dense, r " << r;
+            EXPECT_EQ(GridWithin(sparse, q, r), BruteWithin(sparse_pts, q, r)) << "sparse, r " << r;
+        }
+    // Far outside the box, and non-finite: nothing, no overflow.
+    EXPECT_TRUE(GridWithin(dense, {1e30f, 0, 0}, 0.3f).empty());
+    EXPECT_TRUE(GridWithin(dense, {-1e30f, -1e30f, 0}, 0.3f).empty());
+    EXPECT_TRUE(GridWithin(dense, {std::numeric_limits<float>::quiet_NaN(), 0, 0}, 0.3f).empty());
+}
+
+TEST(UniformGrid, PointsAtExactlyTheRadiusAreFound) {
+    // A lattice with spacing 0.25: from a lattice point, neighbours lie at exactly 0.25 and 0.5,
+    // on cell boundaries of the dense layout (cell 0.5 / 3) and of the sparse one (0.5).
+    std::vector<Vec3f> pts;
+    for (int x = 0; x < 9; ++x)
+        for (int y = 0; y < 9; ++y)
+            for (int z = 0; z < 9; ++z) pts.emplace_back(0.25f * x, 0.25f * y, 0.25f * z);
+    const UniformGrid grid(pts, 0.5f);
+    EXPECT_TRUE(grid.dense());
+    for (const Vec3f& q : {Vec3f(1, 1, 1), Vec3f(0, 0, 0), Vec3f(2, 2, 2), Vec3f(0.5f, 1.75f, 0.25f)})
+        for (const float r : {0.25f, 0.5f}) EXPECT_EQ(GridWithin(grid, q, r), BruteWithin(pts, q, r)) << q.transpose() << " r " << r;
 }
 
 }  // namespace
