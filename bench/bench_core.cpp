@@ -72,6 +72,7 @@ void RenderBench(benchmark::State& state, const std::string& d, int w, int h) {
     state.counters["rays"] = double(r.stats.primary_rays + r.stats.shadow_rays);
     state.counters["hits"] = double(r.stats.hits);
     state.counters["avg_iterations"] = r.stats.AverageIterations();
+    state.counters["setup_ms"] = r.stats.setup_ms;
     state.counters["rays_per_s"] = benchmark::Counter(double(r.stats.primary_rays + r.stats.shadow_rays),
                                                       benchmark::Counter::kIsIterationInvariantRate);
 }

@@ -22,9 +22,9 @@ UniformGrid::UniformGrid(std::span<const Vec3f> points, float cell) : cell_(cell
         for (int a = 0; a < 3; ++a) {
             dims_[a] = static_cast<int>(std::floor(box.Extent()[a] / fine_)) + 1;
             total *= static_cast<std::uint64_t>(dims_[a]);
-            if (total > 8 * n + 4096) break;
+            if (total > kDenseCellsPerPoint * n + 4096) break;
         }
-        dense_ = total <= 8 * n + 4096;
+        dense_ = total <= kDenseCellsPerPoint * n + 4096;
     }
     if (dense_) BuildDense(points);
     else BuildSparse(points);

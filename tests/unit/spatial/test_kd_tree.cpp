@@ -124,7 +124,7 @@ TEST_F(KdTreeTest, UniformGridMatchesBruteForceInBothLayouts) {
 
 TEST(UniformGrid, PointsAtExactlyTheRadiusAreFound) {
     // A lattice with spacing 0.25: from a lattice point, neighbours lie at exactly 0.25 and 0.5,
-    // on cell boundaries of the dense layout (cell 0.5 / 3) and of the sparse one (0.5).
+    // on cell boundaries.
     std::vector<Vec3f> pts;
     for (int x = 0; x < 9; ++x)
         for (int y = 0; y < 9; ++y)
