@@ -9,6 +9,7 @@
 #include "surfel/simplify/simplify_internal.h"
 #include "surfel/spatial/kd_tree.h"
 #include "surfel/surface/local_analysis.h"
+#include "surfel/surface/poly_fit.h"
 
 namespace surfel {
 
@@ -38,6 +39,47 @@ double PeakResidentMiB() {
     return 0.0;
 }
 
+// A cluster's centroid lies inside the curve of a bent surface (below a convex cap, above a
+// concave one), so the result's surface shrinks. The representative is the centroid lifted onto
+// the cluster's own surface: a least-squares quadratic height field z = g(x, y) over the
+// cluster's regression plane (notes 1.3's local polynomial, unweighted, over the members), taken
+// at the centroid (x = y = 0). Still a low-pass average (notes 2: clustering resamples, it does not
+// subsample). Clusters with fewer than kMinFit members, or whose fit is degenerate or moves the
+// point farther than the cluster's thickness, keep the centroid.
+void RepresentativesOnSurface(std::span<const Vec3f> points, const Clustering& clusters,
+                              std::span<const std::uint32_t> count, std::vector<Vec3f>& rep) {
+    constexpr std::uint32_t kMinFit = 20;
+    const std::size_t n = points.size(), m = clusters.count;
+    std::vector<detail::Moments> mom(m);
+    for (std::size_t i = 0; i < n; ++i)
+        if (count[clusters.label[i]] >= kMinFit) mom[clusters.label[i]].Add(points[i]);
+    std::vector<LocalFrame> frame(m);
+    std::vector<PolyFit> fit;
+    fit.reserve(m);
+    std::vector<double> thickness(m, 0.0);
+    for (std::size_t c = 0; c < m; ++c) {
+        double scale = 1.0;
+        if (count[c] >= kMinFit) {
+            const detail::Spread sp = detail::Analyze(mom[c]);
+            frame[c] = LocalFrame::FromNormal(mom[c].Centroid(), sp.v0);
+            scale = std::max(std::sqrt(sp.eigenvalues[2]), 1e-30);
+            thickness[c] = 3.0 * std::sqrt(sp.eigenvalues[0]);
+        }
+        fit.emplace_back(2, scale);
+    }
+    for (std::size_t i = 0; i < n; ++i) {
+        const std::uint32_t c = clusters.label[i];
+        if (count[c] < kMinFit) continue;
+        const Vec3d l = frame[c].ToLocal(points[i].cast<double>());
+        fit[c].Add(l.x(), l.y(), l.z(), 1.0);
+    }
+    for (std::size_t c = 0; c < m; ++c) {
+        PolyCoeffs g;
+        if (count[c] < kMinFit || !fit[c].Solve(&g) || !(std::abs(g.c[0]) <= thickness[c])) continue;
+        rep[c] = frame[c].ToWorld(0.0, 0.0, g.c[0]).cast<float>();
+    }
+}
+
 PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> normals, const Clustering& clusters,
                              std::span<const Vec3f> positions) {
     const std::size_t n = input.size(), m = clusters.count;
@@ -58,6 +100,7 @@ PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> nor
     out.positions.resize(m);
     for (std::size_t c = 0; c < m; ++c)
         out.positions[c] = positions.empty() ? Vec3f((sum[c] / std::max(1u, count[c])).cast<float>()) : positions[c];
+    if (positions.empty()) RepresentativesOnSurface(input.positions, clusters, count, out.positions);
 
     // The nearest input point stands in for clusters without members (particles can end up
     // with none) and for normals that cancel out.

@@ -149,6 +149,19 @@ TEST(Simplify, IterativeIsCurvatureAdaptiveByItsQuadrics) {
     EXPECT_GT(NearCrease(iterative, 0.1), 1.2 * NearCrease(voxel, 0.1));
 }
 
+TEST(Simplify, LargeClustersAreRepresentedOnTheSurfaceNotInsideIt) {
+    // 100 points a cluster on a unit sphere: a cap of 1 - cos(theta) = 0.01, whose centroid lies
+    // about 0.005 r inside. The representative is lifted onto the cluster's quadratic fit.
+    const PointCloud c = Sphere(40000);
+    for (const SimplifyMethod m : {SimplifyMethod::kHierarchical, SimplifyMethod::kIncremental}) {
+        const SimplifyResult r = RunSimplify(c, m, 400);
+        double mean_dev = 0;
+        for (const Vec3f& p : r.cloud.positions) mean_dev += std::abs(p.cast<double>().norm() - 1.0);
+        mean_dev /= double(r.cloud.size());
+        EXPECT_LT(mean_dev, 1e-3) << SimplifyMethodName(m);
+    }
+}
+
 TEST(Simplify, HierarchicalErrorBoundKeepsClustersFlat) {
     const PointCloud c = Sphere(20000);
     std::size_t last = 0;
