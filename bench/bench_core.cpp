@@ -45,7 +45,13 @@ void Mls(benchmark::State& state, const std::string& d) {
     }
     state.counters["h"] = h;
     state.counters["failed"] = double(b.failed);
-    const auto s = MeshFor(d).Measure(b.positions);
+    // Like PCL's output, the projected points only: a point with too few neighbours within the
+    // cutoff (an isolated outlier) is not projected and stays where it was.
+    std::vector<Vec3f> projected;
+    for (std::size_t i = 0; i < b.positions.size(); ++i)
+        if (b.normals[i] != Vec3f::Zero()) projected.push_back(b.positions[i]);
+    state.counters["points"] = double(projected.size());
+    const auto s = MeshFor(d).Measure(projected);
     const auto before = MeshFor(d).Measure(c.positions);
     state.counters["mesh_mean"] = s.mean;
     state.counters["mesh_rms"] = s.rms;

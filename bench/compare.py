@@ -94,7 +94,8 @@ def core_section(rows):
             ("normals_oriented", "normals (k = 16) + consistent orientation (MST, k = 10)",
              [("within30", "within 30° of the mesh normal")]),
             ("mls_project", "MLS projection of every point (degree 2, same h, neighbours within 3h)",
-             [("mesh_mean", "mean distance to bunny_mesh"), ("mesh_rms", "RMS distance")])]:
+             [("points", "points projected"), ("mesh_mean", "mean distance to bunny_mesh"),
+              ("mesh_rms", "RMS distance")])]:
         lines += [f"### {title}", ""]
         for dataset in sorted({r["dataset"] for r in rows if r["task"] == task}):
             sel = [r for r in rows if r["task"] == task and r["dataset"] == dataset]

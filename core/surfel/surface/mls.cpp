@@ -40,30 +40,30 @@ struct MlsSurface::Impl {
 
     std::optional<MlsPoint> Project(const Vec3f& xf, std::vector<Neighbor>& nbrs) const {
         const float h = LocalH(xf, nbrs);
-        if (grid) {
-            nbrs.clear();
-            grid->ForEachWithin(xf, opt.cutoff * h, [&](std::uint32_t i, const Vec3f&, float d2) {
-                nbrs.push_back({i, d2});
-            });
-        } else {
-            tree.Radius(xf, opt.cutoff * h, &nbrs);
-        }
-        const std::size_t m = nbrs.size();
-        if (static_cast<int>(m) < opt.min_neighbors) return std::nullopt;
-        const auto pts = tree.points();
         const Vec3d x = xf.cast<double>();
-        // Neighbours relative to x, once (small, well-conditioned numbers), as arrays for the
+        // Neighbours relative to x (small, well-conditioned numbers), as arrays for the
         // vectorised kernels.
         thread_local NeighborBatch nb;
         nb.clear();
-        for (std::size_t i = 0; i < m; ++i) nb.Push(nbrs[i].index, pts[nbrs[i].index].cast<double>() - x);
+        if (grid) {
+            grid->ForEachWithin(xf, opt.cutoff * h, [&](std::uint32_t i, const Vec3f& p, float) {
+                nb.Push(i, p.cast<double>() - x);
+            });
+        } else {
+            tree.Radius(xf, opt.cutoff * h, &nbrs);
+            const auto pts = tree.points();
+            for (const Neighbor& nbr : nbrs) nb.Push(nbr.index, pts[nbr.index].cast<double>() - x);
+        }
+        const std::size_t m = nb.size();
+        if (static_cast<int>(m) < opt.min_neighbors) return std::nullopt;
         Vec3d q = Vec3d::Zero(), n = Vec3d::Zero();  // q relative to x
         int it = 0;
         bool converged = false;
         for (; it < opt.max_iterations; ++it) {
             // Reference plane (notes 1.3): weighted centroid and covariance around q, in one pass
             // over the first and second moments about x.
-            nb.WeightsAround(q, h);
+            if (it == 0) nb.Weights(h);  // centred at x: the distances of the gather
+            else nb.WeightsAround(q, h);
             const WeightedMoments wm = WeightedMoments::Of(nb);
             if (!(wm.w > 1e-12)) return std::nullopt;
             const Vec3d c = Vec3d(wm.x, wm.y, wm.z) / wm.w;
