@@ -93,12 +93,12 @@ const AaOptions& AaSurface::options() const { return impl_->opt; }
 const PointCloud& AaSurface::cloud() const { return impl_->cloud; }
 float AaSurface::BallRadius(std::uint32_t i) const { return impl_->ball_radius[i]; }
 
-bool AaSurface::FitAt(const Vec3d& r, Fit* fit) const {
+bool AaSurface::FitAt(const Vec3d& r, Fit* fit, float cutoff) const {
     const AaOptions& o = impl_->opt;
     const PointCloud& cloud = impl_->cloud;
     NeighborBatch& nb = tls_batch;
     nb.clear();
-    impl_->grid->ForEachWithin(r.cast<float>(), o.cutoff * o.h, [&](std::uint32_t idx, const Vec3f& p, float) {
+    impl_->grid->ForEachWithin(r.cast<float>(), cutoff * o.h, [&](std::uint32_t idx, const Vec3f& p, float) {
         nb.Push(idx, p.cast<double>() - r);
     });
     fit->valid = false;
@@ -174,12 +174,12 @@ const AaSurface::Fit* AaSurface::CenterFit(std::uint32_t ball, Fit* local, AaCou
     const Vec3d c = impl_->cloud.positions[ball].cast<double>();
     std::uint8_t expected = 0;
     if (state.compare_exchange_strong(expected, 1, std::memory_order_acq_rel)) {
-        FitAt(c, &impl_->centers[ball]);
+        FitAt(c, &impl_->centers[ball], kCenterCutoff);
         state.store(2, std::memory_order_release);
         return &impl_->centers[ball];
     }
     // Another thread is computing it: compute a private copy (same values) rather than wait.
-    FitAt(c, local);
+    FitAt(c, local, kCenterCutoff);
     return local;
 }
 
@@ -207,7 +207,7 @@ std::optional<AaHit> AaSurface::IntersectInBall(std::uint32_t ball, const Vec3d&
         ++counters->iterations;
         ++counters->evaluations;
         const Vec3d r = o + t * d;
-        if (!FitAt(r, &fit)) return std::nullopt;
+        if (!FitAt(r, &fit, opt.cutoff)) return std::nullopt;
         nroots = IntersectPoly(fit.frame, fit.g, o, d, &r0, &r1);
         if (nroots == 0) return std::nullopt;
         double tn = r0;

@@ -95,9 +95,12 @@ public:
     /// See IntersectInBall: in units of h.
     static constexpr double kSameSheet = 0.3;
 
+    /// Support (in units of h) of the ball-centre fits, which only seed the iteration.
+    static constexpr float kCenterCutoff = 2.0f;
+
 private:
     struct Fit;
-    bool FitAt(const Vec3d& r, Fit* fit) const;
+    bool FitAt(const Vec3d& r, Fit* fit, float cutoff) const;
     const Fit* CenterFit(std::uint32_t ball, Fit* local, AaCounters* counters) const;
     struct Impl;
     std::unique_ptr<Impl> impl_;
