@@ -208,36 +208,10 @@ public:
     }
     /// Adds sample (x, y) with height z and weight w. Accumulates the 15 distinct moments
     /// sum w x^a y^b (a + b <= 4) the normal matrix is made of, not the matrix itself.
-    void Add(double x, double y, double z, double w) {
-        const double xs = x * inv_h_, ys = y * inv_h_;
-        const double wx = w * xs, wy = w * ys;
-        const double wxx = wx * xs, wxy = wx * ys, wyy = wy * ys;
-        double* m = mom_;
-        m[0] += w;
-        m[1] += wx;
-        m[2] += wy;
-        m[3] += wxx;
-        m[4] += wxy;
-        m[5] += wyy;
-        m[6] += wxx * xs;   // x^3
-        m[7] += wxx * ys;   // x^2 y
-        m[8] += wxy * ys;   // x y^2
-        m[9] += wyy * ys;   // y^3
-        m[10] += wxx * xs * xs;  // x^4
-        m[11] += wxx * xs * ys;  // x^3 y
-        m[12] += wxx * ys * ys;  // x^2 y^2
-        m[13] += wxy * ys * ys;  // x y^3
-        m[14] += wyy * ys * ys;  // y^4
-        b_[0] += w * z;
-        b_[1] += wx * z;
-        b_[2] += wy * z;
-        b_[3] += wxx * z;
-        b_[4] += wxy * z;
-        b_[5] += wyy * z;
-        wsum_ += w;
-    }
+    void Add(double x, double y, double z, double w) { AddBatch(&x, &y, &z, &w, 1); }
     /// Add() for n samples at once (vectorised): local coordinates x, y, z and weights w.
-    void AddBatch(const double* x, const double* y, const double* z, const float* w, std::size_t n) {
+    template <typename Weight>
+    void AddBatch(const double* x, const double* y, const double* z, const Weight* w, std::size_t n) {
         const double ih = inv_h_;
         double m0 = 0, m1 = 0, m2 = 0, m3 = 0, m4 = 0, m5 = 0, m6 = 0, m7 = 0, m8 = 0, m9 = 0, m10 = 0, m11 = 0,
                m12 = 0, m13 = 0, m14 = 0, b0 = 0, b1 = 0, b2 = 0, b3 = 0, b4 = 0, b5 = 0;
