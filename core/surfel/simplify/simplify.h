@@ -85,7 +85,8 @@ struct Clustering {
 };
 
 /// Builds the output cloud from a clustering: `positions` (one per cluster) or, when empty, the
-/// cluster centroids (eq. 2.1); normals as the normalised sum of the members' oriented
+/// cluster centroids (eq. 2.1), those of clusters with 20+ members lifted onto the cluster's
+/// least-squares quadratic height field (a centroid lies inside a bent surface); normals as the normalised sum of the members' oriented
 /// normals (`normals` may be empty: then estimated on the output and oriented); colours averaged;
 /// radius = the largest distance of a member from the representative, at least the distance to the nearest other representative, so splats leave no holes.
 PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> normals, const Clustering& clusters,
