@@ -17,10 +17,9 @@ UniformGrid::UniformGrid(std::span<const Vec3f> points, float cell) : cell_(cell
         throw Error(ErrorCode::kInvalidArgument, "grid cell size " + std::to_string(cell) + " is too small for the cloud's extent");
     const std::size_t n = points.size();
     if (!box.empty()) {
-        fine_ = cell / kSubdivision;
         std::uint64_t total = 1;
         for (int a = 0; a < 3; ++a) {
-            dims_[a] = static_cast<int>(std::floor(box.Extent()[a] / fine_)) + 1;
+            dims_[a] = static_cast<int>(std::floor(box.Extent()[a] / cell_)) + 1;
             total *= static_cast<std::uint64_t>(dims_[a]);
             if (total > kDenseCellsPerPoint * n + 4096) break;
         }
@@ -36,7 +35,7 @@ void UniformGrid::BuildDense(std::span<const Vec3f> points) {
     const std::size_t cells = static_cast<std::size_t>(dims_[0]) * dims_[1] * dims_[2];
     std::vector<std::uint32_t> cell_of(n);
     starts_.assign(cells + 1, 0);
-    const float inv = 1.0f / fine_;
+    const float inv = 1.0f / cell_;
     for (std::size_t i = 0; i < n; ++i) {
         int c[3];
         for (int a = 0; a < 3; ++a)

@@ -20,8 +20,8 @@ namespace surfel {
 /// - dense (when the box holds at most 32 cells per point): a full array of cell starts,
 ///   x-major and z fastest, so a z-column of cells is one contiguous run of points. A query
 ///   walks the 3 x 3 columns around it, each clipped to the sphere's z-extent: 9 array reads
-///   instead of 27 hash probes. (Finer cells cut the candidates further but cost more in column
-///   overhead than they save: measured with kSubdivision 1, 2, 3 on the bunny render and MLS.)
+///   instead of 27 hash probes. (Cells of cell / 2 or cell / 3 cut the candidates further but
+///   cost more in column overhead than they saved, measured on the bunny render and MLS.)
 /// - sparse (very elongated or sparse clouds): cells of side `cell` in an open-addressing hash
 ///   table (memory O(points) whatever the extent); a query visits the 27 cells around it.
 /// Both visit the same points; the order differs, and is fixed for a given grid.
@@ -38,7 +38,7 @@ public:
         if (dense_) {
             // Ranges are padded by a hair so rounding never drops a point at exactly `radius`
             // (the distance test below is exact; padding only adds candidates).
-            const float pad = 1e-4f * fine_, inv = 1.0f / fine_;
+            const float pad = 1e-4f * cell_, inv = 1.0f / cell_;
             const Vec3f ql = q - origin_;
             int b[3], e[3];
             for (int a = 0; a < 3; ++a) {
@@ -47,9 +47,9 @@ public:
                 if (b[a] > e[a]) return;
             }
             for (int x = b[0]; x <= e[0]; ++x) {
-                const float gx = std::max({0.0f, x * fine_ - ql.x() - pad, ql.x() - (x + 1) * fine_ - pad});
+                const float gx = std::max({0.0f, x * cell_ - ql.x() - pad, ql.x() - (x + 1) * cell_ - pad});
                 for (int y = b[1]; y <= e[1]; ++y) {
-                    const float gy = std::max({0.0f, y * fine_ - ql.y() - pad, ql.y() - (y + 1) * fine_ - pad});
+                    const float gy = std::max({0.0f, y * cell_ - ql.y() - pad, ql.y() - (y + 1) * cell_ - pad});
                     const float rem = r2 - gx * gx - gy * gy;
                     if (rem < 0.0f) continue;
                     const float zr = std::sqrt(rem) + pad;
@@ -117,11 +117,9 @@ private:
     void BuildSparse(std::span<const Vec3f> points);
 
     static constexpr std::uint64_t kEmpty = ~0ULL;
-    static constexpr int kSubdivision = 1;  // dense cells are cell / kSubdivision on a side
     static constexpr std::uint64_t kDenseCellsPerPoint = 32;  // dense layout's memory cap (4 bytes a cell)
     float cell_;
     bool dense_ = false;
-    float fine_ = 0.0f;                   // dense: cell side
     int dims_[3] = {0, 0, 0};             // dense: cells per axis
     Vec3f origin_;
     std::uint64_t mask_ = 0;

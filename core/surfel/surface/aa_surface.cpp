@@ -93,21 +93,37 @@ const AaOptions& AaSurface::options() const { return impl_->opt; }
 const PointCloud& AaSurface::cloud() const { return impl_->cloud; }
 float AaSurface::BallRadius(std::uint32_t i) const { return impl_->ball_radius[i]; }
 
+namespace {
+// The neighbours of r within cutoff * h, relative to r, with their Gaussian weights and weighted
+// moments about r: the first step of both FitAt (eq. 8, 9) and Evaluate (eq. 1-4).
+WeightedMoments GatherAround(const UniformGrid& grid, const Vec3d& r, float radius, double h, NeighborBatch& nb) {
+    nb.clear();
+    grid.ForEachWithin(r.cast<float>(), radius, [&](std::uint32_t idx, const Vec3f& p, float) {
+        nb.Push(idx, p.cast<double>() - r);
+    });
+    if (nb.size() < 3) return {};
+    nb.Weights(h);
+    return WeightedMoments::Of(nb);
+}
+
+// sum w_j n_j over the batch: the orientation reference where the cloud has normals.
+Vec3d WeightedNormal(const PointCloud& cloud, const NeighborBatch& nb) {
+    Vec3d sum = Vec3d::Zero();
+    if (cloud.has_normals())
+        for (std::size_t j = 0; j < nb.size(); ++j) sum += double(nb.w[j]) * cloud.normals[nb.index[j]].cast<double>();
+    return sum;
+}
+}  // namespace
+
 bool AaSurface::FitAt(const Vec3d& r, Fit* fit, float cutoff) const {
     const AaOptions& o = impl_->opt;
     const PointCloud& cloud = impl_->cloud;
     NeighborBatch& nb = tls_batch;
-    nb.clear();
-    impl_->grid->ForEachWithin(r.cast<float>(), cutoff * o.h, [&](std::uint32_t idx, const Vec3f& p, float) {
-        nb.Push(idx, p.cast<double>() - r);
-    });
     fit->valid = false;
-    const std::size_t m = nb.size();
-    if (m < 3) return false;
     // Step 1, support plane: B = sum theta_j (p_j - r)(p_j - r)^T (eq. 8, 9).
-    nb.Weights(o.h);
-    const WeightedMoments wm = WeightedMoments::Of(nb);
+    const WeightedMoments wm = GatherAround(*impl_->grid, r, cutoff * o.h, o.h, nb);
     if (!(wm.w > 1e-12)) return false;
+    const std::size_t m = nb.size();
     Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es;
     es.computeDirect(wm.Second());
     const Vec3d lambda = es.eigenvalues();
@@ -118,10 +134,7 @@ bool AaSurface::FitAt(const Vec3d& r, Fit* fit, float cutoff) const {
     PolyFit pf(o.degree, o.h);
     pf.AddBatch(nb.lx.data(), nb.ly.data(), nb.lz.data(), nb.w.data(), m);
     if (!pf.Solve(&fit->g)) return false;
-    Vec3d nref = Vec3d::Zero();
-    if (cloud.has_normals())
-        for (std::size_t j = 0; j < m; ++j) nref += double(nb.w[j]) * cloud.normals[nb.index[j]].cast<double>();
-    fit->normal_ref = nref;
+    fit->normal_ref = WeightedNormal(cloud, nb);
     if (cloud.has_colors()) {
         Eigen::Vector4d col = Eigen::Vector4d::Zero();
         for (std::size_t j = 0; j < m; ++j) {
@@ -137,28 +150,16 @@ bool AaSurface::FitAt(const Vec3d& r, Fit* fit, float cutoff) const {
 
 AaEvaluation AaSurface::Evaluate(const Vec3d& x) const {
     const AaOptions& o = impl_->opt;
-    const double inv_h2 = 1.0 / (double(o.h) * o.h);
     AaEvaluation ev;
-    Eigen::Matrix3d B = Eigen::Matrix3d::Zero();
-    Vec3d sum = Vec3d::Zero(), nref = Vec3d::Zero();
-    double wsum = 0;
-    std::size_t count = 0;
-    const PointCloud& cloud = impl_->cloud;
-    impl_->grid->ForEachWithin(x.cast<float>(), o.cutoff * o.h, [&](std::uint32_t idx, const Vec3f& p, float) {
-        const Vec3d d = p.cast<double>() - x;
-        const double w = GaussExp(-d.squaredNorm() * inv_h2);
-        B.noalias() += w * d * d.transpose();  // eq. 2-4: covariances in directions through x
-        sum += w * p.cast<double>();
-        wsum += w;
-        if (cloud.has_normals()) nref += w * cloud.normals[idx].cast<double>();
-        ++count;
-    });
-    if (count < 3 || !(wsum > 1e-12)) return ev;
+    NeighborBatch& nb = tls_batch;
+    // eq. 1-4: the weighted mean a(x) and the covariances in directions through x.
+    const WeightedMoments wm = GatherAround(*impl_->grid, x, o.cutoff * o.h, o.h, nb);
+    if (!(wm.w > 1e-12)) return ev;
     Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es;
-    es.computeDirect(B);
-    ev.a = sum / wsum;
+    es.computeDirect(wm.Second());
+    ev.a = x + Vec3d(wm.x, wm.y, wm.z) / wm.w;
     ev.n = es.eigenvectors().col(0).normalized();
-    if (nref.dot(ev.n) < 0) ev.n = -ev.n;
+    if (WeightedNormal(impl_->cloud, nb).dot(ev.n) < 0) ev.n = -ev.n;
     ev.f = ev.n.dot(ev.a - x);
     ev.well_defined = es.eigenvalues()[0] < o.normal_ratio * es.eigenvalues()[1];
     return ev;

@@ -10,34 +10,11 @@
 #include <cmath>
 #include <cstddef>
 #include <cstdint>
-#include <cstring>
 #include <vector>
 
 #include "surfel/base/point_cloud.h"
 
 namespace surfel {
-
-/// e^a for the Gaussian weights theta = exp(-d^2 / h^2) (a <= 0), relative error below 1e-8:
-/// a = n ln 2 + y with |y| <= ln2 / 2, e^y by its degree-7 Taylor polynomial, 2^n by the
-/// exponent bits. About 4x faster than std::exp, which dominated MLS projection.
-inline double GaussExp(double a) {
-    if (a < -700.0) return 0.0;
-    const double t = a * 1.4426950408889634;                          // a / ln 2
-    const double r = (t + 6755399441055744.0) - 6755399441055744.0;  // round to nearest
-    const double y = (t - r) * 0.6931471805599453;                    // |y| <= ln2 / 2
-    double p = 1.0 / 5040.0;
-    p = p * y + 1.0 / 720.0;
-    p = p * y + 1.0 / 120.0;
-    p = p * y + 1.0 / 24.0;
-    p = p * y + 1.0 / 6.0;
-    p = p * y + 0.5;
-    p = p * y + 1.0;
-    p = p * y + 1.0;
-    const std::int64_t bits = (static_cast<std::int64_t>(r) + 1023) << 52;
-    double scale;
-    std::memcpy(&scale, &bits, sizeof scale);
-    return p * scale;
-}
 
 /// w[i] = exp(-d2[i] * inv_h2) for n weights at once, in single precision (Cephes' expf:
 /// Cody-Waite reduction, degree-6 polynomial; relative error below 3e-7). Written so that the
