@@ -1,6 +1,11 @@
 #include "surfel/spatial/uniform_grid.h"
 
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+
 #include <algorithm>
+#include <array>
+#include <limits>
 #include <numeric>
 
 #include "surfel/base/error.h"
@@ -86,6 +91,79 @@ void UniformGrid::BuildSparse(std::span<const Vec3f> points) {
         counts_[h] = static_cast<std::uint32_t>(j - i);
         i = j;
     }
+}
+
+std::vector<float> UniformGrid::KthNeighborDist2InBlock(int k) const {
+    SURFEL_CHECK(k >= 1 && k <= 64, "k must be 1..64, got " << k);
+    if (!dense_) return {};
+    const std::size_t n = sorted_.size();
+    std::vector<float> out(n, -1.0f);
+    const int nx = dims_[0], ny = dims_[1], nz = dims_[2];
+    // One x-slab of cells per task: each cell's 3 x 3 x 3 block is 9 runs of the sorted points.
+    tbb::parallel_for(tbb::blocked_range<int>(0, nx), [&](const tbb::blocked_range<int>& xs) {
+        std::vector<float> cx, cy, cz, d2;
+        for (int x = xs.begin(); x != xs.end(); ++x)
+            for (int y = 0; y < ny; ++y)
+                for (int z = 0; z < nz; ++z) {
+                    const std::size_t cell = (static_cast<std::size_t>(x) * ny + y) * nz + z;
+                    const std::uint32_t first = starts_[cell], last = starts_[cell + 1];
+                    if (first == last) continue;
+                    cx.clear(), cy.clear(), cz.clear();
+                    std::size_t self = 0;  // where the cell's own points start among the candidates
+                    for (int bx = std::max(0, x - 1); bx <= std::min(nx - 1, x + 1); ++bx)
+                        for (int by = std::max(0, y - 1); by <= std::min(ny - 1, y + 1); ++by) {
+                            const std::size_t column = (static_cast<std::size_t>(bx) * ny + by) * nz;
+                            const std::uint32_t b = starts_[column + std::max(0, z - 1)];
+                            const std::uint32_t e = starts_[column + std::min(nz - 1, z + 1) + 1];
+                            if (bx == x && by == y) self = cx.size() + (first - b);
+                            for (std::uint32_t j = b; j < e; ++j)
+                                cx.push_back(sorted_[j].x()), cy.push_back(sorted_[j].y()), cz.push_back(sorted_[j].z());
+                        }
+                    const std::size_t m = cx.size();
+                    // The block reaches at least this far from any point of the cell on every side
+                    // that has a neighbour cell; a side at the grid's edge has no points beyond it.
+                    const Vec3f lo = origin_ + cell_ * Vec3f(float(x - 1), float(y - 1), float(z - 1));
+                    const Vec3f hi = origin_ + cell_ * Vec3f(float(x + 2), float(y + 2), float(z + 2));
+                    const int at[3] = {x, y, z};
+                    if (d2.size() < m) d2.resize(m);
+                    const float *X = cx.data(), *Y = cy.data(), *Z = cz.data();
+                    float* D = d2.data();
+                    for (std::uint32_t i = first; i < last; ++i) {
+                        const Vec3f p = sorted_[i];
+                        const float px = p.x(), py = p.y(), pz = p.z();
+#pragma omp simd
+                        for (std::size_t j = 0; j < m; ++j) {
+                            const float dx = X[j] - px, dy = Y[j] - py, dz = Z[j] - pz;
+                            D[j] = dx * dx + dy * dy + dz * dz;
+                        }
+                        D[self + (i - first)] = std::numeric_limits<float>::infinity();  // not its own neighbour
+                        // The k smallest, sorted: most candidates fail the first comparison.
+                        std::array<float, 64> best;
+                        int count = 0;
+                        for (std::size_t j = 0; j < m; ++j) {
+                            const float v = D[j];
+                            if (count == k && v >= best[k - 1]) continue;
+                            if (count == k) --count;
+                            int slot = count++;
+                            while (slot > 0 && best[slot - 1] > v) {
+                                best[slot] = best[slot - 1];
+                                --slot;
+                            }
+                            best[slot] = v;
+                        }
+                        if (count < k) continue;
+                        // (less a hair: cell assignment and these bounds round differently)
+                        float reach = std::numeric_limits<float>::infinity();
+                        for (int a = 0; a < 3; ++a) {
+                            if (at[a] > 0) reach = std::min(reach, p[a] - lo[a]);
+                            if (at[a] < dims_[a] - 1) reach = std::min(reach, hi[a] - p[a]);
+                        }
+                        reach -= 1e-4f * cell_;
+                        if (reach > 0.0f && best[k - 1] <= reach * reach) out[order_[i]] = best[k - 1];
+                    }
+                }
+    });
+    return out;
 }
 
 }  // namespace surfel

@@ -80,6 +80,13 @@ public:
                 }
     }
 
+    /// Dense layout only: for every point p_i, the squared distance to its k-th nearest other
+    /// point (k <= 64) when that neighbour lies within the 3 x 3 x 3 block of cells around p_i's
+    /// cell (then it is exact), and -1 where it does not (the caller searches further). All
+    /// points of a cell share the block's candidates, gathered once from 9 contiguous z-runs.
+    /// Indexed like the points the grid was built from; parallel. Empty for the sparse layout.
+    std::vector<float> KthNeighborDist2InBlock(int k) const;
+
     /// True when the dense layout was chosen (for tests and diagnostics).
     bool dense() const { return dense_; }
 

@@ -5,7 +5,6 @@
 #include <vector>
 
 #include "surfel/base/error.h"
-#include "surfel/spatial/kd_tree.h"
 #include "surfel/spatial/uniform_grid.h"
 #include "surfel/surface/local_analysis.h"
 
@@ -73,8 +72,7 @@ AaSurface::AaSurface(const PointCloud& cloud, const AaOptions& options)
     if (o.precision < 0 || !std::isfinite(o.precision)) throw Error(ErrorCode::kInvalidArgument, "precision must be > 0 (or 0 for 1e-3 h)");
     if (o.max_iterations < 1) throw Error(ErrorCode::kInvalidArgument, "max_iterations must be >= 1");
     if (!(o.cutoff >= 1.0f)) throw Error(ErrorCode::kInvalidArgument, "cutoff must be >= 1 (in units of h)");
-    KdTree tree(cloud.positions);
-    const SamplingDensity density = ComputeSamplingDensity(tree, o.ball_k);
+    const SamplingDensity density = ComputeSamplingDensity(cloud.positions, o.ball_k);
     impl_->ball_radius = density.radius;
     if (o.h == 0) o.h = DefaultScale(density);
     if (!(o.h > 0)) throw Error(ErrorCode::kInvalidArgument, "cannot derive h from the cloud (all points coincide); pass h");

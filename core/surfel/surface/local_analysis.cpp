@@ -12,6 +12,7 @@
 #include <queue>
 
 #include "surfel/base/error.h"
+#include "surfel/spatial/neighbor_radii.h"
 #include "surfel/surface/poly_fit.h"
 
 namespace surfel {
@@ -23,25 +24,41 @@ float SpacingFromRadius(float r, int k) {
 }
 }  // namespace
 
-SamplingDensity ComputeSamplingDensity(const KdTree& tree, int k, const ProgressFn& progress) {
-    SURFEL_CHECK(k > 0);
+namespace {
+SamplingDensity DensityFromRadii(std::vector<float> radius, int k) {
     SamplingDensity d;
-    const std::size_t n = tree.size();
-    if (n < 2) return d;
-    const KnnTable knn = tree.KnnAll(std::min<int>(k, static_cast<int>(n) - 1), progress);
-    d.radius.resize(n);
+    const std::size_t n = radius.size();
+    d.radius = std::move(radius);
     d.density.resize(n);
     d.spacing.resize(n);
     for (std::size_t i = 0; i < n; ++i) {
-        const float r = std::sqrt(knn.Dist2(i)[knn.k - 1]);
-        d.radius[i] = r;
-        d.density[i] = r > 0 ? static_cast<float>(knn.k / (std::numbers::pi * r * r)) : std::numeric_limits<float>::infinity();
-        d.spacing[i] = SpacingFromRadius(r, knn.k);
+        const float r = d.radius[i];
+        d.density[i] = r > 0 ? static_cast<float>(k / (std::numbers::pi * r * r)) : std::numeric_limits<float>::infinity();
+        d.spacing[i] = SpacingFromRadius(r, k);
     }
     std::vector<float> s = d.spacing;
     std::nth_element(s.begin(), s.begin() + s.size() / 2, s.end());
     d.median_spacing = s[s.size() / 2];
     return d;
+}
+}  // namespace
+
+SamplingDensity ComputeSamplingDensity(const KdTree& tree, int k, const ProgressFn& progress) {
+    SURFEL_CHECK(k > 0);
+    const std::size_t n = tree.size();
+    if (n < 2) return {};
+    k = std::min<int>(k, static_cast<int>(n) - 1);
+    ProgressTracker tracker(progress, 1.0, "sampling density");
+    SamplingDensity d = DensityFromRadii(KthNeighborDistances(tree.points(), k, &tree), k);
+    tracker.Advance(1.0);
+    return d;
+}
+
+SamplingDensity ComputeSamplingDensity(std::span<const Vec3f> points, int k) {
+    SURFEL_CHECK(k > 0);
+    if (points.size() < 2) return {};
+    k = std::min<int>(k, static_cast<int>(points.size()) - 1);
+    return DensityFromRadii(KthNeighborDistances(points, k), k);
 }
 
 float MedianSpacing(const KdTree& tree, int k, std::size_t max_samples) {

@@ -20,8 +20,12 @@ struct SamplingDensity {
     float median_spacing = 0.0f;
 };
 
-/// Computes SamplingDensity with the k nearest neighbours (default 6, as Adamson & Alexa).
+/// Computes SamplingDensity with the k nearest neighbours (default 6, as Adamson & Alexa); k is
+/// clamped to size() - 1. The k-th distances come from KthNeighborDistances (a fine grid, the
+/// tree where the grid does not suit the cloud).
 SamplingDensity ComputeSamplingDensity(const KdTree& tree, int k = 6, const ProgressFn& progress = {});
+/// The same from the positions alone, for callers that need no kd-tree.
+SamplingDensity ComputeSamplingDensity(std::span<const Vec3f> points, int k = 6);
 
 /// The median of the spacing eta over at most `max_samples` points (an even stride through the
 /// cloud; all of them when it is smaller): what DefaultScale needs, without a density per point.

@@ -1,0 +1,112 @@
+#include "surfel/spatial/neighbor_radii.h"
+
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+
+#include "surfel/base/error.h"
+#include "surfel/spatial/kd_tree.h"
+#include "surfel/spatial/uniform_grid.h"
+
+namespace surfel {
+
+namespace {
+
+constexpr int kMaxK = 64;  // the sorted array of the k smallest lives on the stack
+// Grid cell = this x the median k-th distance: smaller cells send more points to the outward
+// search, larger ones give each block more candidates.
+constexpr float kCellPerMedian = 1.0f;
+
+// Squared distance from point i to its k-th nearest other point, gathering within `radius` and
+// doubling it until k others are found (`reach` bounds the doubling: beyond it every point of
+// the box is within the radius).
+float KthDist2(const UniformGrid& grid, std::span<const Vec3f> points, std::uint32_t i, int k, float radius,
+               float reach) {
+    std::array<float, kMaxK> best;
+    for (;;) {
+        int count = 0;
+        grid.ForEachWithin(points[i], radius, [&](std::uint32_t j, const Vec3f&, float d2) {
+            if (j == i) return;
+            if (count == k) {
+                if (d2 >= best[k - 1]) return;
+                --count;  // the largest drops out
+            }
+            int at = count++;
+            while (at > 0 && best[at - 1] > d2) {
+                best[at] = best[at - 1];
+                --at;
+            }
+            best[at] = d2;
+        });
+        if (count == k) return best[k - 1];
+        if (radius > reach) return count ? best[count - 1] : 0.0f;  // not reached with finite points
+        radius *= 2.0f;
+    }
+}
+
+std::vector<float> ViaTree(std::span<const Vec3f> points, int k, const KdTree* tree) {
+    std::unique_ptr<KdTree> own;
+    if (!tree) {
+        own = std::make_unique<KdTree>(points);
+        tree = own.get();
+    }
+    const KnnTable knn = tree->KnnAll(k);
+    std::vector<float> r(points.size());
+    for (std::size_t i = 0; i < points.size(); ++i) r[i] = std::sqrt(knn.Dist2(i)[knn.k - 1]);
+    return r;
+}
+
+}  // namespace
+
+std::vector<float> KthNeighborDistances(std::span<const Vec3f> points, int k, const KdTree* tree) {
+    SURFEL_CHECK(k > 0, "k must be positive, got " << k);
+    const std::size_t n = points.size();
+    if (n < 2) return std::vector<float>(n, 0.0f);
+    k = static_cast<int>(std::min<std::size_t>(static_cast<std::size_t>(k), n - 1));
+    BoundingBox box;
+    for (const Vec3f& p : points) {
+        if (!p.allFinite()) return ViaTree(points, k, tree);
+        box.Extend(p);
+    }
+    const float diag = box.Diagonal();
+    if (!(diag > 0.0f)) return std::vector<float>(n, 0.0f);  // all points coincide
+    if (k > kMaxK) return ViaTree(points, k, tree);
+
+    // A first cell from the box, as if the points sampled a surface of area ~ diag^2: spacing
+    // diag / sqrt(n), and the k-th neighbour about sqrt(k / pi) spacings away.
+    float cell = diag * std::sqrt(static_cast<float>(k) / (3.14159265f * static_cast<float>(n)));
+    auto grid = std::make_unique<UniformGrid>(points, std::max(cell, diag * 1e-6f));
+    if (!grid->dense()) return ViaTree(points, k, tree);
+    const float reach = 2.0f * diag;
+    // Refine the cell from the median k-th distance of an even sample (volumes, lines and very
+    // uneven clouds are far from the surface guess) when it is off by more than 1.5x.
+    {
+        const std::size_t samples = std::min<std::size_t>(n, 256), stride = n / samples;
+        std::vector<float> d(samples);
+        for (std::size_t s = 0; s < samples; ++s)
+            d[s] = KthDist2(*grid, points, static_cast<std::uint32_t>(s * stride), k, grid->cell(), reach);
+        std::nth_element(d.begin(), d.begin() + samples / 2, d.end());
+        const float want = kCellPerMedian * std::sqrt(d[samples / 2]);
+        if (want > 0.0f && (want > 1.5f * cell || want < cell / 1.5f)) {
+            cell = want;
+            grid = std::make_unique<UniformGrid>(points, std::max(cell, diag * 1e-6f));
+            if (!grid->dense()) return ViaTree(points, k, tree);
+        }
+    }
+    // Most points find their k-th neighbour in the block of cells around them; the rest search
+    // outwards from there.
+    std::vector<float> r = grid->KthNeighborDist2InBlock(k);
+    const UniformGrid& g = *grid;
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 2048), [&](const tbb::blocked_range<std::size_t>& range) {
+        for (std::size_t i = range.begin(); i != range.end(); ++i) {
+            if (r[i] < 0.0f) r[i] = KthDist2(g, points, static_cast<std::uint32_t>(i), k, 2.0f * g.cell(), reach);
+            r[i] = std::sqrt(r[i]);
+        }
+    });
+    return r;
+}
+
+}  // namespace surfel

@@ -1,0 +1,32 @@
+#pragma once
+/// \file
+/// The distance from every point of a cloud to its k-th nearest other point, for all points at
+/// once: the radius r_i of the sampling density (course notes 1.1.1) and of the renderer's
+/// bounding balls (Adamson & Alexa, section 5).
+
+#include <span>
+#include <vector>
+
+#include "surfel/base/point_cloud.h"
+
+namespace surfel {
+
+class KdTree;
+
+/// For each point i, the distance to its k-th nearest neighbour among the other points (a
+/// duplicate of p_i counts, at distance 0); k is clamped to points.size() - 1, and every
+/// distance is 0 when there are fewer than 2 points. Exact: the same values as
+/// KdTree::KnnAll(k), which it falls back to where a grid does not suit the cloud.
+///
+/// Method: the points are bucketed in a dense uniform grid whose cell is about the median k-th
+/// distance (guessed from the box as for a surface, checked on an even sample of 256 points);
+/// every point first looks among the points of the 3 x 3 x 3 cells around its own
+/// (UniformGrid::KthNeighborDist2InBlock, exact when the k-th lies inside that block), and the
+/// rest (about 10 % on the bunny) gather within a doubling radius. Clouds whose box would need
+/// more than the grid's dense cell budget, k > 64, and non-finite coordinates go to the kd-tree
+/// (`tree` if given, built otherwise). Parallel (oneTBB); the result does not depend on the
+/// thread count. On the bunny (35k points, k = 6, 2 cores) about 13 ms against 23 ms for the
+/// kd-tree's build and KnnAll.
+std::vector<float> KthNeighborDistances(std::span<const Vec3f> points, int k, const KdTree* tree = nullptr);
+
+}  // namespace surfel
