@@ -35,9 +35,24 @@ public:
     template <typename Fn>
     void ForEachWithin(const Vec3f& q, float radius, Fn&& fn) const {
         const float r2 = radius * radius;
+        ForEachCandidateRun(q, radius, [&](std::uint32_t first, std::uint32_t last) {
+            for (std::uint32_t i = first; i < last; ++i) {
+                const float d2 = (sorted_[i] - q).squaredNorm();
+                if (d2 <= r2) fn(order_[i], sorted_[i], d2);
+            }
+        });
+    }
+
+    /// Calls fn(first, last) for runs [first, last) of the cell-sorted points (sorted_points(),
+    /// sorted_indices()) that together hold every point within `radius` (<= cell()) of q, among
+    /// others the caller filters out by distance (as ForEachWithin does, with the same float
+    /// test). For callers that filter a whole run at once, without a branch per point.
+    template <typename Fn>
+    void ForEachCandidateRun(const Vec3f& q, float radius, Fn&& fn) const {
+        const float r2 = radius * radius;
         if (dense_) {
             // Ranges are padded by a hair so rounding never drops a point at exactly `radius`
-            // (the distance test below is exact; padding only adds candidates).
+            // (the distance test is exact; padding only adds candidates).
             const float pad = 1e-4f * cell_, inv = 1.0f / cell_;
             const Vec3f ql = q - origin_;
             int b[3], e[3];
@@ -58,10 +73,7 @@ public:
                     if (z0 > z1) continue;
                     const std::size_t column = (static_cast<std::size_t>(x) * dims_[1] + y) * dims_[2];
                     const std::uint32_t first = starts_[column + z0], last = starts_[column + z1 + 1];
-                    for (std::uint32_t i = first; i < last; ++i) {
-                        const float d2 = (sorted_[i] - q).squaredNorm();
-                        if (d2 <= r2) fn(order_[i], sorted_[i], d2);
-                    }
+                    if (first < last) fn(first, last);
                 }
             }
             return;
@@ -72,13 +84,13 @@ public:
                 for (int dx = -1; dx <= 1; ++dx) {
                     const std::int64_t slot = Find(Key(c.x() + dx, c.y() + dy, c.z() + dz));
                     if (slot < 0) continue;
-                    const std::uint32_t b = starts_[slot], e = starts_[slot] + counts_[slot];
-                    for (std::uint32_t i = b; i < e; ++i) {
-                        const float d2 = (sorted_[i] - q).squaredNorm();
-                        if (d2 <= r2) fn(order_[i], sorted_[i], d2);
-                    }
+                    fn(starts_[slot], starts_[slot] + counts_[slot]);
                 }
     }
+
+    /// The points in cell order, and their indices in the input (for ForEachCandidateRun).
+    const Vec3f* sorted_points() const { return sorted_.data(); }
+    const std::uint32_t* sorted_indices() const { return order_.data(); }
 
     /// Dense layout only: for every point p_i, the squared distance to its k-th nearest other
     /// point (k <= 64) when that neighbour lies within the 3 x 3 x 3 block of cells around p_i's

@@ -96,8 +96,9 @@ namespace {
 // moments about r: the first step of both FitAt (eq. 8, 9) and Evaluate (eq. 1-4).
 WeightedMoments GatherAround(const UniformGrid& grid, const Vec3d& r, float radius, double h, NeighborBatch& nb) {
     nb.clear();
-    grid.ForEachWithin(r.cast<float>(), radius, [&](std::uint32_t idx, const Vec3f& p, float) {
-        nb.Push(idx, p.cast<double>() - r);
+    const Vec3f rf = r.cast<float>();
+    grid.ForEachCandidateRun(rf, radius, [&](std::uint32_t first, std::uint32_t last) {
+        nb.PushWithin(grid.sorted_points() + first, grid.sorted_indices() + first, last - first, rf, radius * radius, r);
     });
     if (nb.size() < 3) return {};
     nb.Weights(h);

@@ -46,8 +46,10 @@ struct MlsSurface::Impl {
         thread_local NeighborBatch nb;
         nb.clear();
         if (grid) {
-            grid->ForEachWithin(xf, opt.cutoff * h, [&](std::uint32_t i, const Vec3f& p, float) {
-                nb.Push(i, p.cast<double>() - x);
+            const float radius = opt.cutoff * h;
+            grid->ForEachCandidateRun(xf, radius, [&](std::uint32_t first, std::uint32_t last) {
+                nb.PushWithin(grid->sorted_points() + first, grid->sorted_indices() + first, last - first, xf,
+                              radius * radius, x);
             });
         } else {
             tree.Radius(xf, opt.cutoff * h, &nbrs);

@@ -58,6 +58,30 @@ struct NeighborBatch {
         index[n_] = i;
         ++n_;
     }
+    /// Appends the points pts[0..count) (indices idx) that lie within sqrt(r2) of qf, as offsets
+    /// from r (r = qf in double); the distance test is ForEachWithin's float test. Branch-free:
+    /// every candidate is written and the count advances only for those inside, so the
+    /// unpredictable in/out test costs no mispredictions.
+    void PushWithin(const Vec3f* pts, const std::uint32_t* idx, std::size_t count, const Vec3f& qf, float r2,
+                    const Vec3d& r) {
+        while (n_ + count > index.size()) Grow();
+        std::size_t n = n_;
+        double *X = x.data(), *Y = y.data(), *Z = z.data();
+        float* D = d2.data();
+        std::uint32_t* I = index.data();
+        for (std::size_t j = 0; j < count; ++j) {
+            const Vec3f& p = pts[j];
+            const float df = (p - qf).squaredNorm();
+            const double dx = double(p.x()) - r.x(), dy = double(p.y()) - r.y(), dz = double(p.z()) - r.z();
+            X[n] = dx;
+            Y[n] = dy;
+            Z[n] = dz;
+            D[n] = static_cast<float>(dx * dx + dy * dy + dz * dz);
+            I[n] = idx[j];
+            n += df <= r2 ? 1 : 0;
+        }
+        n_ = n;
+    }
     /// d2 relative to centre c (in the same coordinates as x, y, z), then w = exp(-d2 / h^2).
     void WeightsAround(const Vec3d& c, double h) {
         const std::size_t n = size();
