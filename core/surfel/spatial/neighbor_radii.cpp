@@ -18,7 +18,9 @@ namespace {
 constexpr int kMaxK = 64;  // the sorted array of the k smallest lives on the stack
 // Grid cell = this x the median k-th distance: smaller cells send more points to the outward
 // search, larger ones give each block more candidates.
-constexpr float kCellPerMedian = 1.0f;
+// On the bunny (k = 6): 1.0 sends 10 % of the points outwards, 1.3 under 1 %, for about the
+// same block time.
+constexpr float kCellPerMedian = 1.3f;
 
 // Squared distance from point i to its k-th nearest other point, gathering within `radius` and
 // doubling it until k others are found (`reach` bounds the doubling: beyond it every point of
@@ -75,25 +77,32 @@ std::vector<float> KthNeighborDistances(std::span<const Vec3f> points, int k, co
     if (!(diag > 0.0f)) return std::vector<float>(n, 0.0f);  // all points coincide
     if (k > kMaxK) return ViaTree(points, k, tree);
 
+    // The smallest cell >= c (in steps of 1.25x) that the dense layout fits, or 0.
+    auto dense_cell = [&](float c) {
+        c = std::max(c, diag * 1e-6f);
+        for (int t = 0; t < 12; ++t, c *= 1.25f)
+            if (UniformGrid::FitsDense(box, n, c)) return c;
+        return 0.0f;
+    };
     // A first cell from the box, as if the points sampled a surface of area ~ diag^2: spacing
     // diag / sqrt(n), and the k-th neighbour about sqrt(k / pi) spacings away.
-    float cell = diag * std::sqrt(static_cast<float>(k) / (3.14159265f * static_cast<float>(n)));
-    auto grid = std::make_unique<UniformGrid>(points, std::max(cell, diag * 1e-6f));
-    if (!grid->dense()) return ViaTree(points, k, tree);
+    float cell = dense_cell(kCellPerMedian * diag * std::sqrt(static_cast<float>(k) / (3.14159265f * static_cast<float>(n))));
+    if (cell == 0.0f) return ViaTree(points, k, tree);
+    auto grid = std::make_unique<UniformGrid>(points, cell);
     const float reach = 2.0f * diag;
     // Refine the cell from the median k-th distance of an even sample (volumes, lines and very
-    // uneven clouds are far from the surface guess) when it is off by more than 1.5x.
+    // uneven clouds are far from the surface guess) when it is off by more than 1.5x, as far as
+    // the dense layout allows.
     {
         const std::size_t samples = std::min<std::size_t>(n, 256), stride = n / samples;
         std::vector<float> d(samples);
         for (std::size_t s = 0; s < samples; ++s)
             d[s] = KthDist2(*grid, points, static_cast<std::uint32_t>(s * stride), k, grid->cell(), reach);
         std::nth_element(d.begin(), d.begin() + samples / 2, d.end());
-        const float want = kCellPerMedian * std::sqrt(d[samples / 2]);
+        const float want = dense_cell(kCellPerMedian * std::sqrt(d[samples / 2]));
         if (want > 0.0f && (want > 1.5f * cell || want < cell / 1.5f)) {
             cell = want;
-            grid = std::make_unique<UniformGrid>(points, std::max(cell, diag * 1e-6f));
-            if (!grid->dense()) return ViaTree(points, k, tree);
+            grid = std::make_unique<UniformGrid>(points, cell);
         }
     }
     // Most points find their k-th neighbour in the block of cells around them; the rest search

@@ -99,6 +99,9 @@ public:
     /// Indexed like the points the grid was built from; parallel. Empty for the sparse layout.
     std::vector<float> KthNeighborDist2InBlock(int k) const;
 
+    /// Whether a grid of `n` points in `box` with this cell gets the dense layout.
+    static bool FitsDense(const BoundingBox& box, std::size_t n, float cell);
+
     /// True when the dense layout was chosen (for tests and diagnostics).
     bool dense() const { return dense_; }
 

@@ -192,6 +192,9 @@ std::optional<AaHit> AaSurface::IntersectInBall(std::uint32_t ball, const Vec3d&
     auto inside = [&](double t) { return t >= tmin && t <= tmax && (o + t * d - center).squaredNorm() <= rho2; };
 
     // r_0: the ray against the ball centre's polynomial (section 5), cached per ball.
+    // The same-sheet test below, decided before the centre fit: any root in [tmin, tmax] would
+    // lie within kSameSheet * h in front of the known hit.
+    if (tmin > known_hit - kSameSheet * opt.h) return std::nullopt;
     Fit local;
     const Fit* cf = CenterFit(ball, &local, counters);
     if (!cf->valid) return std::nullopt;
