@@ -133,7 +133,10 @@ public:
         device_ = rtcNewDevice(nullptr);
         if (!device_) throw Error(ErrorCode::kInternal, "Embree device creation failed");
         scene_ = rtcNewScene(device_);
-        rtcSetSceneBuildQuality(scene_, RTC_BUILD_QUALITY_HIGH);
+        // LOW: the Morton builder. On the bunny it builds in 8 ms against 11-14 ms for HIGH (SAH)
+        // and renders no slower (single-core 158 against 162 ms; the image differs only in which
+        // ball a ray meets first).
+        rtcSetSceneBuildQuality(scene_, RTC_BUILD_QUALITY_LOW);
         RTCGeometry g = rtcNewGeometry(device_, RTC_GEOMETRY_TYPE_USER);
         rtcSetGeometryUserPrimitiveCount(g, static_cast<unsigned>(count));
         rtcSetGeometryUserData(g, const_cast<SceneData*>(data));
