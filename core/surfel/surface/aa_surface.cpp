@@ -92,13 +92,13 @@ const PointCloud& AaSurface::cloud() const { return impl_->cloud; }
 float AaSurface::BallRadius(std::uint32_t i) const { return impl_->ball_radius[i]; }
 
 namespace {
-// The neighbours of r within cutoff * h, relative to r, with their Gaussian weights and weighted
-// moments about r: the first step of both FitAt (eq. 8, 9) and Evaluate (eq. 1-4).
-WeightedMoments GatherAround(const UniformGrid& grid, const Vec3d& r, float radius, double h, NeighborBatch& nb) {
+// The neighbours within cutoff * h of o (a point in float, so that offsets are float
+// differences), relative to o, with their Gaussian weights and weighted moments about o: the
+// first step of both FitAt (eq. 8, 9) and Evaluate (eq. 1-4).
+WeightedMoments GatherAround(const UniformGrid& grid, const Vec3f& o, float radius, double h, NeighborBatch& nb) {
     nb.clear();
-    const Vec3f rf = r.cast<float>();
-    grid.ForEachCandidateRun(rf, radius, [&](std::uint32_t first, std::uint32_t last) {
-        nb.PushWithin(grid.sorted_points() + first, grid.sorted_indices() + first, last - first, rf, radius * radius, r);
+    grid.ForEachCandidateRun(o, radius, [&](std::uint32_t first, std::uint32_t last) {
+        nb.PushWithin(grid.sorted_points() + first, grid.sorted_indices() + first, last - first, o, radius * radius);
     });
     if (nb.size() < 3) return {};
     nb.Weights(h);
@@ -119,15 +119,17 @@ bool AaSurface::FitAt(const Vec3d& r, Fit* fit, float cutoff) const {
     const PointCloud& cloud = impl_->cloud;
     NeighborBatch& nb = tls_batch;
     fit->valid = false;
-    // Step 1, support plane: B = sum theta_j (p_j - r)(p_j - r)^T (eq. 8, 9).
-    const WeightedMoments wm = GatherAround(*impl_->grid, r, cutoff * o.h, o.h, nb);
+    // Step 1, support plane: B = sum theta_j (p_j - r)(p_j - r)^T (eq. 8, 9), about r rounded to
+    // float (within 1e-7 relative of r; the frame's origin is that point).
+    const Vec3f rf = r.cast<float>();
+    const WeightedMoments wm = GatherAround(*impl_->grid, rf, cutoff * o.h, o.h, nb);
     if (!(wm.w > 1e-12)) return false;
     const std::size_t m = nb.size();
     Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es;
     es.computeDirect(wm.Second());
     const Vec3d lambda = es.eigenvalues();
     if (!(lambda[0] < o.normal_ratio * lambda[1])) return false;  // normal not well defined
-    fit->frame = LocalFrame::FromNormal(r, es.eigenvectors().col(0));
+    fit->frame = LocalFrame::FromNormal(rf.cast<double>(), es.eigenvectors().col(0));
     // Step 2, polynomial: minimise sum (a_i(x_j, y_j) - f_j)^2 theta_j (eq. 10).
     nb.ToLocal(Vec3d::Zero(), fit->frame.u, fit->frame.v, fit->frame.n);
     PolyFit pf(o.degree, o.h);
@@ -152,11 +154,12 @@ AaEvaluation AaSurface::Evaluate(const Vec3d& x) const {
     AaEvaluation ev;
     NeighborBatch& nb = tls_batch;
     // eq. 1-4: the weighted mean a(x) and the covariances in directions through x.
-    const WeightedMoments wm = GatherAround(*impl_->grid, x, o.cutoff * o.h, o.h, nb);
+    const Vec3f xf = x.cast<float>();
+    const WeightedMoments wm = GatherAround(*impl_->grid, xf, o.cutoff * o.h, o.h, nb);
     if (!(wm.w > 1e-12)) return ev;
     Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es;
     es.computeDirect(wm.Second());
-    ev.a = x + Vec3d(wm.x, wm.y, wm.z) / wm.w;
+    ev.a = xf.cast<double>() + Vec3d(wm.x, wm.y, wm.z) / wm.w;
     ev.n = es.eigenvectors().col(0).normalized();
     if (WeightedNormal(impl_->cloud, nb).dot(ev.n) < 0) ev.n = -ev.n;
     ev.f = ev.n.dot(ev.a - x);

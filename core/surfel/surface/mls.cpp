@@ -49,12 +49,12 @@ struct MlsSurface::Impl {
             const float radius = opt.cutoff * h;
             grid->ForEachCandidateRun(xf, radius, [&](std::uint32_t first, std::uint32_t last) {
                 nb.PushWithin(grid->sorted_points() + first, grid->sorted_indices() + first, last - first, xf,
-                              radius * radius, x);
+                              radius * radius);
             });
         } else {
             tree.Radius(xf, opt.cutoff * h, &nbrs);
             const auto pts = tree.points();
-            for (const Neighbor& nbr : nbrs) nb.Push(nbr.index, pts[nbr.index].cast<double>() - x);
+            for (const Neighbor& nbr : nbrs) nb.Push(nbr.index, pts[nbr.index] - xf);
         }
         const std::size_t m = nb.size();
         if (static_cast<int>(m) < opt.min_neighbors) return std::nullopt;

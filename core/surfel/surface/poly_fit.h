@@ -42,41 +42,40 @@ inline void GaussWeights(const float* d2, float inv_h2, float* w, std::size_t n)
 /// The neighbours of one surface evaluation as arrays (structure of arrays, so the kernels
 /// vectorise), kept per thread and reused: no allocation once grown.
 struct NeighborBatch {
-    std::vector<double> x, y, z;     ///< p_j - r in world axes.
+    std::vector<float> x, y, z;      ///< p_j - o in world axes, o the gather's origin (a float point).
     std::vector<double> lx, ly, lz;  ///< Local frame coordinates (filled by ToLocal).
     std::vector<float> d2, w;        ///< Squared distance to the centre of the weights; weight.
     std::vector<std::uint32_t> index;
 
     std::size_t size() const { return n_; }
     void clear() { n_ = 0; }
-    void Push(std::uint32_t i, const Vec3d& d) {
+    /// Appends point i at offset d from the origin.
+    void Push(std::uint32_t i, const Vec3f& d) {
         if (n_ == index.size()) Grow();
         x[n_] = d.x();
         y[n_] = d.y();
         z[n_] = d.z();
-        d2[n_] = static_cast<float>(d.squaredNorm());
+        d2[n_] = d.squaredNorm();
         index[n_] = i;
         ++n_;
     }
-    /// Appends the points pts[0..count) (indices idx) that lie within sqrt(r2) of qf, as offsets
-    /// from r (r = qf in double); the distance test is ForEachWithin's float test. Branch-free:
-    /// every candidate is written and the count advances only for those inside, so the
-    /// unpredictable in/out test costs no mispredictions.
-    void PushWithin(const Vec3f* pts, const std::uint32_t* idx, std::size_t count, const Vec3f& qf, float r2,
-                    const Vec3d& r) {
+    /// Appends the points pts[0..count) (indices idx) that lie within sqrt(r2) of the origin o,
+    /// as offsets p - o, with ForEachWithin's float distance test. Branch-free: every candidate
+    /// is written and the count advances only for those inside, so the unpredictable in/out
+    /// test costs no mispredictions. Offsets of a few h are exact to float rounding of p - o
+    /// (relative 6e-8), far below any fit's precision; the kernels sum them in double.
+    void PushWithin(const Vec3f* pts, const std::uint32_t* idx, std::size_t count, const Vec3f& o, float r2) {
         while (n_ + count > index.size()) Grow();
         std::size_t n = n_;
-        double *X = x.data(), *Y = y.data(), *Z = z.data();
-        float* D = d2.data();
+        float *X = x.data(), *Y = y.data(), *Z = z.data(), *D = d2.data();
         std::uint32_t* I = index.data();
         for (std::size_t j = 0; j < count; ++j) {
-            const Vec3f& p = pts[j];
-            const float df = (p - qf).squaredNorm();
-            const double dx = double(p.x()) - r.x(), dy = double(p.y()) - r.y(), dz = double(p.z()) - r.z();
-            X[n] = dx;
-            Y[n] = dy;
-            Z[n] = dz;
-            D[n] = static_cast<float>(dx * dx + dy * dy + dz * dz);
+            const Vec3f e = pts[j] - o;
+            const float df = e.squaredNorm();
+            X[n] = e.x();
+            Y[n] = e.y();
+            Z[n] = e.z();
+            D[n] = df;
             I[n] = idx[j];
             n += df <= r2 ? 1 : 0;
         }
@@ -87,7 +86,7 @@ struct NeighborBatch {
         const std::size_t n = size();
         const double cx = c.x(), cy = c.y(), cz = c.z();
         float* D = d2.data();
-        const double *X = x.data(), *Y = y.data(), *Z = z.data();
+        const float *X = x.data(), *Y = y.data(), *Z = z.data();
 #pragma omp simd
         for (std::size_t i = 0; i < n; ++i) {
             const double ex = X[i] - cx, ey = Y[i] - cy, ez = Z[i] - cz;
@@ -102,7 +101,7 @@ struct NeighborBatch {
     /// lx, ly, lz = coordinates of (x, y, z) - o along the axes u, v, n.
     void ToLocal(const Vec3d& o, const Vec3d& u, const Vec3d& v, const Vec3d& nrm) {
         const std::size_t n = size();
-        const double *X = x.data(), *Y = y.data(), *Z = z.data();
+        const float *X = x.data(), *Y = y.data(), *Z = z.data();
         double *LX = lx.data(), *LY = ly.data(), *LZ = lz.data();
         const double ox = o.x(), oy = o.y(), oz = o.z();
 #pragma omp simd
@@ -117,7 +116,8 @@ struct NeighborBatch {
 private:
     void Grow() {
         const std::size_t cap = std::max<std::size_t>(256, 2 * index.size());
-        for (auto* v : {&x, &y, &z, &lx, &ly, &lz}) v->resize(cap);
+        for (auto* v : {&x, &y, &z}) v->resize(cap);
+        for (auto* v : {&lx, &ly, &lz}) v->resize(cap);
         d2.resize(cap);
         w.resize(cap);
         index.resize(cap);
@@ -131,22 +131,23 @@ struct WeightedMoments {
 
     static WeightedMoments Of(const NeighborBatch& b) {
         double w = 0, x = 0, y = 0, z = 0, xx = 0, xy = 0, xz = 0, yy = 0, yz = 0, zz = 0;
-        const double *X = b.x.data(), *Y = b.y.data(), *Z = b.z.data();
+        const float *X = b.x.data(), *Y = b.y.data(), *Z = b.z.data();
         const float* W = b.w.data();
         const std::size_t n = b.size();
 #pragma omp simd reduction(+ : w, x, y, z, xx, xy, xz, yy, yz, zz)
         for (std::size_t i = 0; i < n; ++i) {
-            const double wi = W[i], wx = wi * X[i], wy = wi * Y[i], wz = wi * Z[i];
+            const double xi = X[i], yi = Y[i], zi = Z[i];
+            const double wi = W[i], wx = wi * xi, wy = wi * yi, wz = wi * zi;
             w += wi;
             x += wx;
             y += wy;
             z += wz;
-            xx += wx * X[i];
-            xy += wx * Y[i];
-            xz += wx * Z[i];
-            yy += wy * Y[i];
-            yz += wy * Z[i];
-            zz += wz * Z[i];
+            xx += wx * xi;
+            xy += wx * yi;
+            xz += wx * zi;
+            yy += wy * yi;
+            yz += wy * zi;
+            zz += wz * zi;
         }
         return {w, x, y, z, xx, xy, xz, yy, yz, zz};
     }
