@@ -22,12 +22,13 @@ class KdTree;
 /// k-th distance (guessed from the box as for a surface, checked on an even sample of 256 points);
 /// every point first looks among the points of the 3 x 3 x 3 cells around its own
 /// (UniformGrid::KthNeighborDist2InBlock, exact when the k-th lies inside that block), and the
-/// rest (under 1 % on the bunny) gather within a doubling radius. Where the dense layout's cell
-/// budget does not allow that cell, the smallest coarser cell it allows is used (up to ~12x);
+/// rest (under 1 % on the bunny) gather within a doubling radius. The grid holds at most 8
+/// cells a point (32 bytes of cell starts a point); where that does not allow the cell, the
+/// smallest coarser cell it allows is used (up to ~12x);
 /// clouds it cannot hold even so, k > 64, and non-finite coordinates go to the kd-tree (`tree`
 /// if given, built otherwise). Parallel (oneTBB); the result does not depend on the
-/// thread count. On the bunny (35k points, k = 6, 2 cores) about 7 ms against 18 ms for the
-/// kd-tree's build and KnnAll; on the 362k merged scans 130 against 215 ms.
+/// thread count. On the bunny (35k points, k = 6, 2 cores) about 8 ms against 20 ms for the
+/// kd-tree's build and KnnAll; on the 362k merged scans about 105 against 215 ms.
 std::vector<float> KthNeighborDistances(std::span<const Vec3f> points, int k, const KdTree* tree = nullptr);
 
 }  // namespace surfel

@@ -27,12 +27,13 @@ UniformGrid::UniformGrid(std::span<const Vec3f> points, float cell) : cell_(cell
     else BuildSparse(points);
 }
 
-bool UniformGrid::FitsDense(const BoundingBox& box, std::size_t n, float cell) {
+bool UniformGrid::FitsDense(const BoundingBox& box, std::size_t n, float cell, std::uint64_t cells_per_point) {
     if (box.empty() || !(cell > 0.0f) || (box.Extent() / cell).maxCoeff() > float(1 << 20)) return false;
+    const std::uint64_t budget = std::min(cells_per_point, kDenseCellsPerPoint) * n + 4096;
     std::uint64_t total = 1;
     for (int a = 0; a < 3; ++a) {
         total *= static_cast<std::uint64_t>(std::floor(box.Extent()[a] / cell)) + 1;
-        if (total > kDenseCellsPerPoint * n + 4096) return false;
+        if (total > budget) return false;
     }
     return true;
 }

@@ -99,8 +99,10 @@ public:
     /// Indexed like the points the grid was built from; parallel. Empty for the sparse layout.
     std::vector<float> KthNeighborDist2InBlock(int k) const;
 
-    /// Whether a grid of `n` points in `box` with this cell gets the dense layout.
-    static bool FitsDense(const BoundingBox& box, std::size_t n, float cell);
+    /// Whether a grid of `n` points in `box` with this cell gets the dense layout (at most
+    /// `cells_per_point` cells a point, 4 bytes each; the constructor allows 32).
+    static bool FitsDense(const BoundingBox& box, std::size_t n, float cell,
+                          std::uint64_t cells_per_point = kDenseCellsPerPoint);
 
     /// True when the dense layout was chosen (for tests and diagnostics).
     bool dense() const { return dense_; }
