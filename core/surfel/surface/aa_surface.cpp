@@ -19,13 +19,25 @@ struct AaSurface::Fit {
     bool valid = false;
 };
 
+// A cached ball-centre fit: the plane's normal and first tangent and the polynomial, in single
+// precision (48 bytes a ball instead of a whole Fit's 192: the cache has an entry per point, and
+// it only seeds the iteration). The frame's origin is the ball centre; the second tangent is
+// n x u. (The tangent is stored, not re-derived from the rounded normal, which could pick the
+// other helper axis in LocalFrame::FromNormal and turn the polynomial's axes.)
+struct CenterEntry {
+    float n[3];
+    float u[3];
+    float c[6];
+};
+
 struct AaSurface::Impl {
     const PointCloud& cloud;
     AaOptions opt;
     std::vector<float> ball_radius;
     std::unique_ptr<UniformGrid> grid;
-    std::vector<Fit> centers;
-    std::unique_ptr<std::atomic<std::uint8_t>[]> center_state;  // 0 empty, 1 being computed, 2 ready
+    std::vector<CenterEntry> centers;
+    // 0 empty, 1 being computed, 2 ready, 3 ready but undefined (no fit at that centre).
+    std::unique_ptr<std::atomic<std::uint8_t>[]> center_state;
     Impl(const PointCloud& c, const AaOptions& o) : cloud(c), opt(o) {}
 };
 
@@ -114,7 +126,7 @@ Vec3d WeightedNormal(const PointCloud& cloud, const NeighborBatch& nb) {
 }
 }  // namespace
 
-bool AaSurface::FitAt(const Vec3d& r, Fit* fit, float cutoff) const {
+bool AaSurface::FitAt(const Vec3d& r, Fit* fit, float cutoff, bool attributes) const {
     const AaOptions& o = impl_->opt;
     const PointCloud& cloud = impl_->cloud;
     NeighborBatch& nb = tls_batch;
@@ -135,6 +147,8 @@ bool AaSurface::FitAt(const Vec3d& r, Fit* fit, float cutoff) const {
     PolyFit pf(o.degree, o.h);
     pf.AddBatch(nb.lx.data(), nb.ly.data(), nb.lz.data(), nb.w.data(), m);
     if (!pf.Solve(&fit->g)) return false;
+    fit->valid = true;
+    if (!attributes) return true;
     fit->normal_ref = WeightedNormal(cloud, nb);
     if (cloud.has_colors()) {
         Eigen::Vector4d col = Eigen::Vector4d::Zero();
@@ -167,23 +181,41 @@ AaEvaluation AaSurface::Evaluate(const Vec3d& x) const {
     return ev;
 }
 
-const AaSurface::Fit* AaSurface::CenterFit(std::uint32_t ball, Fit* local, AaCounters* counters) const {
+bool AaSurface::CenterFit(std::uint32_t ball, Fit* out, AaCounters* counters) const {
     auto& state = impl_->center_state[ball];
-    if (state.load(std::memory_order_acquire) == 2) {
+    CenterEntry& entry = impl_->centers[ball];
+    const Vec3d center = impl_->cloud.positions[ball].cast<double>();
+    // Every caller, the one that computes the entry included, reads the single-precision entry:
+    // the image must not depend on which ray (thread) reached the ball first.
+    auto unpack = [&](const CenterEntry& e) {
+        out->frame.origin = center;
+        out->frame.n = Vec3d(e.n[0], e.n[1], e.n[2]).normalized();
+        out->frame.u = Vec3d(e.u[0], e.u[1], e.u[2]).normalized();
+        out->frame.v = out->frame.n.cross(out->frame.u).normalized();
+        for (int i = 0; i < 6; ++i) out->g.c[i] = e.c[i];
+        out->valid = true;
+        return true;
+    };
+    std::uint8_t s = state.load(std::memory_order_acquire);
+    if (s >= 2) {
         ++counters->cache_hits;
-        return &impl_->centers[ball];
+        return s == 2 && unpack(entry);
     }
     ++counters->evaluations;
-    const Vec3d c = impl_->cloud.positions[ball].cast<double>();
+    CenterEntry fresh{};
+    const bool ok = FitAt(center, out, kCenterCutoff, false);
+    if (ok) {
+        for (int i = 0; i < 3; ++i) fresh.n[i] = static_cast<float>(out->frame.n[i]);
+        for (int i = 0; i < 3; ++i) fresh.u[i] = static_cast<float>(out->frame.u[i]);
+        for (int i = 0; i < 6; ++i) fresh.c[i] = static_cast<float>(out->g.c[i]);
+    }
     std::uint8_t expected = 0;
     if (state.compare_exchange_strong(expected, 1, std::memory_order_acq_rel)) {
-        FitAt(c, &impl_->centers[ball], kCenterCutoff);
-        state.store(2, std::memory_order_release);
-        return &impl_->centers[ball];
+        entry = fresh;
+        state.store(ok ? 2 : 3, std::memory_order_release);
     }
-    // Another thread is computing it: compute a private copy (same values) rather than wait.
-    FitAt(c, local, kCenterCutoff);
-    return local;
+    // (Another thread computing the same ball computes the same values: the fit is deterministic.)
+    return ok && unpack(fresh);
 }
 
 std::optional<AaHit> AaSurface::IntersectInBall(std::uint32_t ball, const Vec3d& o, const Vec3d& d, double tmin,
@@ -198,9 +230,9 @@ std::optional<AaHit> AaSurface::IntersectInBall(std::uint32_t ball, const Vec3d&
     // The same-sheet test below, decided before the centre fit: any root in [tmin, tmax] would
     // lie within kSameSheet * h in front of the known hit.
     if (tmin > known_hit - kSameSheet * opt.h) return std::nullopt;
-    Fit local;
-    const Fit* cf = CenterFit(ball, &local, counters);
-    if (!cf->valid) return std::nullopt;
+    Fit center_fit;
+    if (!CenterFit(ball, &center_fit, counters)) return std::nullopt;
+    const Fit* cf = &center_fit;
     double r0, r1, t = 0;
     int nroots = IntersectPoly(cf->frame, cf->g, o, d, &r0, &r1);
     bool found = false;
@@ -213,7 +245,7 @@ std::optional<AaHit> AaSurface::IntersectInBall(std::uint32_t ball, const Vec3d&
         ++counters->iterations;
         ++counters->evaluations;
         const Vec3d r = o + t * d;
-        if (!FitAt(r, &fit, opt.cutoff)) return std::nullopt;
+        if (!FitAt(r, &fit, opt.cutoff, true)) return std::nullopt;
         nroots = IntersectPoly(fit.frame, fit.g, o, d, &r0, &r1);
         if (nroots == 0) return std::nullopt;
         double tn = r0;

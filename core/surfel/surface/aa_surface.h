@@ -100,8 +100,11 @@ public:
 
 private:
     struct Fit;
-    bool FitAt(const Vec3d& r, Fit* fit, float cutoff) const;
-    const Fit* CenterFit(std::uint32_t ball, Fit* local, AaCounters* counters) const;
+    /// `attributes`: also the reference normal and colour (only converged fits need them).
+    bool FitAt(const Vec3d& r, Fit* fit, float cutoff, bool attributes) const;
+    /// The ball centre's support plane and polynomial (no attributes), from the per-ball cache;
+    /// false when that fit is not defined.
+    bool CenterFit(std::uint32_t ball, Fit* out, AaCounters* counters) const;
     struct Impl;
     std::unique_ptr<Impl> impl_;
 };
