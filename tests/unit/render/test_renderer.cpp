@@ -1,5 +1,7 @@
 #include <gtest/gtest.h>
 
+#include <tbb/global_control.h>
+
 #include <filesystem>
 
 #include "surfel/base/error.h"
@@ -177,6 +179,33 @@ TEST(Render, SameImageWhateverTheTileSize) {
     EXPECT_EQ(a.image.pixels.size(), b.image.pixels.size());
     for (std::size_t i = 0; i < a.image.pixels.size(); ++i)
         if (!std::isinf(a.image.pixels[i])) ASSERT_EQ(a.image.pixels[i], b.image.pixels[i]) << i;
+}
+
+TEST(Render, SameImageWhateverTheThreadCount) {
+    // The per-ball cache fills in whatever order the threads reach the balls; every ray must
+    // read the same cached values, with shadows and several samples a pixel.
+    ShapeOptions o;
+    o.points = 8000;
+    o.noise = 0.003;
+    const PointCloud cloud = SampleShape(Shape::kTorus, o);
+    RenderOptions opt;
+    opt.camera = Camera::Framing(cloud.Bounds(), 48, 40, Vec3d(0.3, -1.0, 0.8));
+    opt.samples_per_pixel = 2;
+    opt.tile = 8;
+    RenderResult one, many;
+    {
+        tbb::global_control limit(tbb::global_control::max_allowed_parallelism, 1);
+        one = Render(cloud, opt);
+    }
+    {
+        tbb::global_control limit(tbb::global_control::max_allowed_parallelism, 4);
+        many = Render(cloud, opt);
+    }
+    ASSERT_GT(one.stats.hits, 0u);
+    EXPECT_EQ(one.stats.hits, many.stats.hits);
+    ASSERT_EQ(one.image.pixels.size(), many.image.pixels.size());
+    for (std::size_t i = 0; i < one.image.pixels.size(); ++i)
+        if (!std::isinf(one.image.pixels[i])) ASSERT_EQ(one.image.pixels[i], many.image.pixels[i]) << i;
 }
 
 TEST(Render, BadOptionsAreInvalidArgument) {
