@@ -21,10 +21,12 @@ UniformGrid::UniformGrid(std::span<const Vec3f> points, float cell) : cell_(cell
     if (!box.empty() && (box.Extent() / cell).maxCoeff() > float(1 << 20))
         throw Error(ErrorCode::kInvalidArgument, "grid cell size " + std::to_string(cell) + " is too small for the cloud's extent");
     dense_ = FitsDense(box, points.size(), cell);
-    if (dense_)
+    if (dense_) {
         for (int a = 0; a < 3; ++a) dims_[a] = static_cast<int>(std::floor(box.Extent()[a] / cell_)) + 1;
-    if (dense_) BuildDense(points);
-    else BuildSparse(points);
+        BuildDense(points);
+    } else {
+        BuildSparse(points);
+    }
 }
 
 bool UniformGrid::FitsDense(const BoundingBox& box, std::size_t n, float cell, std::uint64_t cells_per_point) {

@@ -117,13 +117,6 @@ WeightedMoments GatherAround(const UniformGrid& grid, const Vec3f& o, float radi
     return WeightedMoments::Of(nb);
 }
 
-// sum w_j n_j over the batch: the orientation reference where the cloud has normals.
-Vec3d WeightedNormal(const PointCloud& cloud, const NeighborBatch& nb) {
-    Vec3d sum = Vec3d::Zero();
-    if (cloud.has_normals())
-        for (std::size_t j = 0; j < nb.size(); ++j) sum += double(nb.w[j]) * cloud.normals[nb.index[j]].cast<double>();
-    return sum;
-}
 }  // namespace
 
 bool AaSurface::FitAt(const Vec3d& r, Fit* fit, float cutoff, bool attributes) const {
@@ -159,7 +152,6 @@ bool AaSurface::FitAt(const Vec3d& r, Fit* fit, float cutoff, bool attributes) c
         col /= wm.w;
         fit->color = {float(col[0]), float(col[1]), float(col[2]), float(col[3])};
     }
-    fit->valid = true;
     return true;
 }
 
@@ -194,12 +186,13 @@ bool AaSurface::CenterFit(std::uint32_t ball, Fit* out, AaCounters* counters) co
         out->frame.v = out->frame.n.cross(out->frame.u).normalized();
         for (int i = 0; i < 6; ++i) out->g.c[i] = e.c[i];
         out->valid = true;
-        return true;
     };
-    std::uint8_t s = state.load(std::memory_order_acquire);
+    const std::uint8_t s = state.load(std::memory_order_acquire);
     if (s >= 2) {
         ++counters->cache_hits;
-        return s == 2 && unpack(entry);
+        if (s == 3) return false;
+        unpack(entry);
+        return true;
     }
     ++counters->evaluations;
     CenterEntry fresh{};
@@ -215,7 +208,9 @@ bool AaSurface::CenterFit(std::uint32_t ball, Fit* out, AaCounters* counters) co
         state.store(ok ? 2 : 3, std::memory_order_release);
     }
     // (Another thread computing the same ball computes the same values: the fit is deterministic.)
-    return ok && unpack(fresh);
+    if (!ok) return false;
+    unpack(fresh);
+    return true;
 }
 
 std::optional<AaHit> AaSurface::IntersectInBall(std::uint32_t ball, const Vec3d& o, const Vec3d& d, double tmin,

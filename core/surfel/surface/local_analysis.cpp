@@ -41,24 +41,24 @@ SamplingDensity DensityFromRadii(std::vector<float> radius, int k) {
     d.median_spacing = s[s.size() / 2];
     return d;
 }
+
+SamplingDensity ComputeSamplingDensity(std::span<const Vec3f> points, int k, const KdTree* tree) {
+    SURFEL_CHECK(k > 0);
+    if (points.size() < 2) return {};
+    k = std::min<int>(k, static_cast<int>(points.size()) - 1);
+    return DensityFromRadii(KthNeighborDistances(points, k, tree), k);
+}
 }  // namespace
 
 SamplingDensity ComputeSamplingDensity(const KdTree& tree, int k, const ProgressFn& progress) {
-    SURFEL_CHECK(k > 0);
-    const std::size_t n = tree.size();
-    if (n < 2) return {};
-    k = std::min<int>(k, static_cast<int>(n) - 1);
     ProgressTracker tracker(progress, 1.0, "sampling density");
-    SamplingDensity d = DensityFromRadii(KthNeighborDistances(tree.points(), k, &tree), k);
+    SamplingDensity d = ComputeSamplingDensity(tree.points(), k, &tree);
     tracker.Advance(1.0);
     return d;
 }
 
 SamplingDensity ComputeSamplingDensity(std::span<const Vec3f> points, int k) {
-    SURFEL_CHECK(k > 0);
-    if (points.size() < 2) return {};
-    k = std::min<int>(k, static_cast<int>(points.size()) - 1);
-    return DensityFromRadii(KthNeighborDistances(points, k), k);
+    return ComputeSamplingDensity(points, k, nullptr);
 }
 
 float MedianSpacing(const KdTree& tree, int k, std::size_t max_samples) {

@@ -99,11 +99,7 @@ struct MlsSurface::Impl {
         out.position = (x + q + g.c[0] * n).cast<float>();
         Vec3d normal = frame.NormalAt(g, 0.0, 0.0);
         // Orientation: agree with the cloud's normals where it has them.
-        if (cloud.has_normals()) {
-            Vec3d avg = Vec3d::Zero();
-            for (std::size_t i = 0; i < m; ++i) avg += double(nb.w[i]) * cloud.normals[nb.index[i]].cast<double>();
-            if (normal.dot(avg) < 0) normal = -normal;
-        }
+        if (normal.dot(WeightedNormal(cloud, nb)) < 0) normal = -normal;
         out.normal = normal.cast<float>();
         out.iterations = it;
         out.neighbors = static_cast<int>(m);

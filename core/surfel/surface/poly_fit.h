@@ -125,6 +125,15 @@ private:
     std::size_t n_ = 0;
 };
 
+/// sum w_j n_j of the cloud's normals over a batch: the orientation reference of a fit (zero when
+/// the cloud has no normals).
+inline Vec3d WeightedNormal(const PointCloud& cloud, const NeighborBatch& nb) {
+    Vec3d sum = Vec3d::Zero();
+    if (cloud.has_normals())
+        for (std::size_t j = 0; j < nb.size(); ++j) sum += double(nb.w[j]) * cloud.normals[nb.index[j]].cast<double>();
+    return sum;
+}
+
 /// Weighted sums for a covariance: sum w, sum w d, sum w d d^T (upper triangle) over a batch.
 struct WeightedMoments {
     double w = 0, x = 0, y = 0, z = 0, xx = 0, xy = 0, xz = 0, yy = 0, yz = 0, zz = 0;
