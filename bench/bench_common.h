@@ -142,6 +142,7 @@ inline void SimplifyCounters(benchmark::State& state, const std::string& dataset
     eo.max_samples = 20000;
     const SurfaceError e = MeasureSurfaceError(Dataset(dataset), out, eo);
     state.counters["err_avg_rel"] = e.avg_relative();
+    state.counters["err_avg_ps_rel"] = e.avg_per_sample_relative();
     state.counters["err_max_rel"] = e.max_relative();
     if (!MeshOf(dataset).empty()) {
         const auto s = MeshFor(dataset).Measure(out.positions);

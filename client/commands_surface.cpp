@@ -80,7 +80,8 @@ void RunError(ErrorArgs& a) {
     Stopwatch watch;
     const SurfaceError e = MeasureSurfaceError(p, q, a.opt, MakeProgressBar("error", a.flags));
     PrintReport({{"points", e.samples}, {"max", e.max}, {"avg", e.avg}, {"rms", e.rms}, {"diagonal", e.diagonal},
-                 {"max_relative", e.max_relative()}, {"avg_relative", e.avg_relative()}, {"failed", e.failed},
+                 {"max_relative", e.max_relative()}, {"avg_relative", e.avg_relative()},
+                 {"avg_per_sample", e.avg_per_sample}, {"avg_per_sample_relative", e.avg_per_sample_relative()}, {"failed", e.failed},
                  {"time_ms", watch.ElapsedMs()}},
                 a.flags);
 }

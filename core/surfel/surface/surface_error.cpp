@@ -13,9 +13,34 @@ namespace surfel {
 namespace {
 
 struct Sums {
-    double max = 0, sum = 0, sum2 = 0;
+    double max = 0, sum = 0;        // plain, per sample
+    double area = 0, wsum = 0, wsum2 = 0;  // weighted by the area each sample stands for
     std::size_t n = 0, failed = 0;
 };
+
+// The area of S each sample of P stands for: 1 / rho with rho = k / (pi r_k^2) from its k = 16
+// nearest other samples (notes 1.1.1). Capped at kAreaCap times the median so that a stray
+// sample far from the rest cannot dominate the mean.
+constexpr int kAreaNeighbors = 16;
+constexpr double kAreaCap = 64.0;
+std::vector<double> SampleAreas(const KdTree& tree, std::span<const Vec3f> samples) {
+    std::vector<double> area(samples.size(), 1.0);
+    const int k = std::min<int>(kAreaNeighbors, static_cast<int>(tree.size()) - 1);
+    if (k < 1 || samples.empty()) return area;
+    const KnnTable knn = tree.KnnBatch(samples, k + 1);  // the sample itself comes first
+    for (std::size_t i = 0; i < samples.size(); ++i) {
+        const double r2 = knn.Dist2(i)[k];
+        area[i] = std::isfinite(r2) ? 3.14159265358979323846 * r2 / k : 0.0;
+    }
+    std::vector<double> sorted = area;
+    std::nth_element(sorted.begin(), sorted.begin() + static_cast<std::ptrdiff_t>(sorted.size() / 2), sorted.end());
+    const double median = sorted[sorted.size() / 2];
+    for (double& a : area) {
+        if (median > 0) a = std::min(a, kAreaCap * median);
+        else a = 1.0;  // half the samples coincide: no area to tell them apart, equal weights
+    }
+    return area;
+}
 
 Sums OneSided(const PointCloud& p, const PointCloud& p_prime, float h_src, float h_dst, int degree, std::size_t max_samples,
               std::uint64_t seed, const ProgressFn& progress) {
@@ -36,6 +61,7 @@ Sums OneSided(const PointCloud& p, const PointCloud& p_prime, float h_src, float
     std::vector<Vec3f> q0(idx.size());
     for (std::size_t i = 0; i < idx.size(); ++i) q0[i] = p.positions[idx[i]];
     KdTree tree_src(p.positions);
+    const std::vector<double> area = SampleAreas(tree_src, q0);
     MlsOptions src_opt;
     src_opt.h = h_src;
     MlsSurface s(p, tree_src, src_opt);
@@ -64,7 +90,9 @@ Sums OneSided(const PointCloud& p, const PointCloud& p_prime, float h_src, float
         else ++sums.failed;
         sums.max = std::max(sums.max, d);
         sums.sum += d;
-        sums.sum2 += d * d;
+        sums.area += area[i];
+        sums.wsum += area[i] * d;
+        sums.wsum2 += area[i] * d * d;
         ++sums.n;
     }
     return sums;
@@ -77,16 +105,20 @@ SurfaceError MeasureSurfaceError(const PointCloud& p, const PointCloud& p_prime,
     Sums a = OneSided(p, p_prime, o.h_source, o.h_target, o.degree, o.max_samples, o.seed, progress);
     if (o.symmetric) {
         Sums b = OneSided(p_prime, p, o.h_target, o.h_source, o.degree, o.max_samples, o.seed + 1, {});
+        // Pooled: the mean over both surfaces, each sample weighted by the area it stands for.
         a.max = std::max(a.max, b.max);
         a.sum += b.sum;
-        a.sum2 += b.sum2;
+        a.area += b.area;
+        a.wsum += b.wsum;
+        a.wsum2 += b.wsum2;
         a.n += b.n;
         a.failed += b.failed;
     }
     SurfaceError e;
     e.max = a.max;
-    e.avg = a.n ? a.sum / static_cast<double>(a.n) : 0.0;
-    e.rms = a.n ? std::sqrt(a.sum2 / static_cast<double>(a.n)) : 0.0;
+    e.avg = a.area > 0 ? a.wsum / a.area : 0.0;
+    e.rms = a.area > 0 ? std::sqrt(a.wsum2 / a.area) : 0.0;
+    e.avg_per_sample = a.n ? a.sum / static_cast<double>(a.n) : 0.0;
     e.diagonal = p.Bounds().Diagonal();
     e.samples = a.n;
     e.failed = a.failed;

@@ -23,11 +23,18 @@ struct SurfaceErrorOptions {
 
 struct SurfaceError {
     double max = 0.0;        ///< Delta_max (eq. 2.4), absolute
-    double avg = 0.0;        ///< Delta_avg (eq. 2.5), absolute
-    double rms = 0.0;
+    /// Delta_avg (eq. 2.5), absolute: "the area-weighted integral of the point-to-surface
+    /// distances". The notes draw Q uniformly by area (a particle simulation); Q here is P's own
+    /// samples, so each q is weighted by the area its sample stands for (1 / rho, from its 16
+    /// nearest neighbours, capped at 64 x the median) and a scanner's uneven density does not
+    /// weight the regions it sampled densely.
+    double avg = 0.0;
+    double rms = 0.0;             ///< Root mean square distance, area-weighted like avg.
+    double avg_per_sample = 0.0;  ///< The plain mean of d(q, S') over Q (density-weighted).
     double diagonal = 0.0;   ///< Bounding-box diagonal of P, the reference length
     double max_relative() const { return diagonal > 0 ? max / diagonal : 0.0; }
     double avg_relative() const { return diagonal > 0 ? avg / diagonal : 0.0; }
+    double avg_per_sample_relative() const { return diagonal > 0 ? avg_per_sample / diagonal : 0.0; }
     std::size_t samples = 0; ///< |Q| actually measured
     /// Samples whose projection onto S' failed or extrapolated (landed farther than the nearest
     /// sample of P' plus h'); their distance is the one to that nearest sample. Samples that

@@ -32,5 +32,32 @@ TEST(SurfaceError, OffsetSphereMeasuresTheOffset) {
     EXPECT_NEAR(e.avg_relative(), 0.02 / e.diagonal, 1e-4);
 }
 
+// The notes' Delta_avg is an area integral (Q uniform by area). A sphere sampled ten times more
+// densely at the poles than at the equator, against the same sphere moved by t along z: the
+// distance is about t |cos theta|, whose mean over the sphere's area is t / 2. The plain mean over
+// the samples leans to the poles, where the distance is largest: t E[|c| (1 + 8c^2)] / E[1 + 8c^2]
+// = t * 2.5 / (11 / 3) = 0.682 t.
+TEST(SurfaceError, AverageIsOverAreaWhateverTheSamplingDensity) {
+    ShapeOptions o;
+    o.points = 60000;
+    const PointCloud dense = SampleShape(Shape::kSphere, o);
+    PointCloud a;
+    std::uint64_t state = 12345;
+    for (const Vec3f& p : dense.positions) {
+        state = state * 6364136223846793005ull + 1442695040888963407ull;
+        const double u = static_cast<double>(state >> 11) / 9007199254740992.0;
+        if (u * 9.0 < 1.0 + 8.0 * p.z() * p.z()) a.positions.push_back(p);
+    }
+    const double t = 0.02;
+    o.points = 8000;
+    o.seed = 7;
+    PointCloud b = SampleShape(Shape::kSphere, o);
+    for (Vec3f& p : b.positions) p.z() += static_cast<float>(t);
+    const SurfaceError e = MeasureSurfaceError(a, b);
+    EXPECT_NEAR(e.avg, 0.5 * t, 0.03 * t);
+    EXPECT_NEAR(e.avg_per_sample, 2.5 / (11.0 / 3.0) * t, 0.03 * t);
+    EXPECT_NEAR(e.max, t, 0.1 * t);
+}
+
 }  // namespace
 }  // namespace surfel

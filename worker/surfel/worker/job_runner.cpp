@@ -189,6 +189,7 @@ nlohmann::json SimplifyReportJson(const SimplifyReport& r) {
                       {"avg", r.error->avg},
                       {"max_relative", r.error->max_relative()},
                       {"avg_relative", r.error->avg_relative()},
+                      {"avg_per_sample_relative", r.error->avg_per_sample_relative()},
                       {"samples", r.error->samples},
                       {"failed", r.error->failed},
                       {"time_ms", r.error_time_ms}};
