@@ -131,6 +131,8 @@ def simplify_section(rows):
              "surface, relative to the bounding-box diagonal), the same metric for every implementation: "
              "`err avg` weights each sample by the area it stands for (the notes' area integral), "
              "`per sample` is the plain mean over the input's samples (it leans to densely scanned regions); "
+             "`linear` is Δavg by area with the notes' linear basis for the projection onto the result's "
+             "surface (Surfel's default is quadratic, see docs/surface-model.md); "
              "`mesh` is the mean distance of the output points to bunny_mesh.ply (bunny only). "
              "`vs surfel` divides by Surfel's time for the same kind of method (hierarchical for "
              "CGAL's hierarchy, voxel for the grids, particle for WLOP).", ""]
@@ -146,11 +148,12 @@ def simplify_section(rows):
             ref = ours.get({"wlop": "particle"}.get(method, method))
             ratio = f"{r['ms'] / ref['ms']:.2f}×" if ref and r["impl"] != "surfel" else "–"
             body.append([f"{r['impl']} {name}", int(r.get("points", 0)), r["ms"], ratio,
-                         r.get("err_avg_rel", "–"), r.get("err_avg_ps_rel", "–"), r.get("err_max_rel", "–"),
+                         r.get("err_avg_rel", "–"), r.get("err_avg_ps_rel", "–"), r.get("err_avg_lin_rel", "–"),
+                         r.get("err_max_rel", "–"),
                          r.get("mesh_mean", "–"),
                          r.get("peak_rss_mb", "–")])
         lines += [f"### `{dataset}` to {pct.replace('pct', ' %')}", "",
-                  table(["implementation", "points", "time (ms)", "vs surfel", "err avg (rel)", "per sample",
+                  table(["implementation", "points", "time (ms)", "vs surfel", "err avg (rel)", "per sample", "linear",
                          "err max (rel)",
                          "mesh mean", "peak RSS (MB)"], body), ""]
     return lines
