@@ -4,7 +4,8 @@ tables with ratios: bench/compare.py [--bin build/bin] [--out bench/results.md] 
 
 Each benchmark runs in its own process, so `peak_rss_mb` is that benchmark's own peak (the
 dataset loaded plus the algorithm). Times are wall-clock (both cores available to everyone);
-benchmarks under 3 s are run 5 times and the median is reported.
+benchmarks under 3 s are run 5 more times, interleaved with the peers' runs of the same task
+(Surfel, CGAL, PCL, Open3D, Surfel, ...), and the median is reported.
 """
 import argparse
 import datetime
@@ -15,7 +16,8 @@ import subprocess
 import sys
 import tempfile
 
-MEDIAN_BELOW_MS = 3000  # benchmarks shorter than this are repeated 5 times (median reported)
+MEDIAN_BELOW_MS = 3000  # benchmarks shorter than this are repeated (median reported)
+ROUNDS = 5  # interleaved repetitions of each short benchmark
 
 PROGRAMS = [("bench_core", "surfel"), ("bench_peer_cgal", "CGAL 5.5"), ("bench_peer_pcl", "PCL 1.13"),
             ("bench_peer_open3d", "Open3D 0.16")]
@@ -27,8 +29,34 @@ SIMPLIFY_PEER_NAMES = {("CGAL 5.5", "hierarchical"): "hierarchy_simplify_point_s
                        ("PCL 1.13", "voxel"): "VoxelGrid", ("Open3D 0.16", "voxel"): "VoxelDownSample"}
 
 
+def run_benchmark(exe, name, repetitions=1):
+    """One process running one benchmark; its JSON records (the median aggregate when repeated)."""
+    with tempfile.NamedTemporaryFile(suffix=".json") as out:
+        args = [exe, f"--benchmark_filter=^{re.escape(name)}$", f"--benchmark_out={out.name}",
+                "--benchmark_out_format=json"]
+        if repetitions > 1:
+            args += [f"--benchmark_repetitions={repetitions}", "--benchmark_report_aggregates_only=true"]
+        r = subprocess.run(args, capture_output=True, text=True)
+        if r.returncode != 0:
+            print(f"compare: {name} failed:\n{r.stderr[-2000:]}", file=sys.stderr)
+            return None
+        records = json.load(open(out.name))["benchmarks"]
+        if repetitions > 1:
+            records = [b for b in records if b.get("aggregate_name") == "median"] or records
+        return records
+
+
+def real_ms(b):
+    return b["real_time"] if b["time_unit"] == "ms" else b["real_time"] / 1e6
+
+
 def run_all(bin_dir, regex):
-    rows = []
+    """Every benchmark once (its counters and a first time); then the short ones (under
+    MEDIAN_BELOW_MS) again ROUNDS times, interleaved: each round runs Surfel's benchmark and every
+    peer's benchmark of the same name one after the other, so a noisy stretch of the shared VM
+    falls on all of them alike; the median of the rounds is reported."""
+    first = {}  # (impl, name) -> records
+    order = []
     for program, impl in PROGRAMS:
         exe = os.path.join(bin_dir, program)
         if not os.path.exists(exe):
@@ -39,33 +67,37 @@ def run_all(bin_dir, regex):
         for name in names:
             if regex and not re.search(regex, name):
                 continue
-            with tempfile.NamedTemporaryFile(suffix=".json") as out:
-                print(f"compare: {impl}: {name}", file=sys.stderr, flush=True)
-                r = subprocess.run([exe, f"--benchmark_filter=^{re.escape(name)}$",
-                                    f"--benchmark_out={out.name}", "--benchmark_out_format=json"],
-                                   capture_output=True, text=True)
-                if r.returncode != 0:
-                    print(f"compare: {name} failed:\n{r.stderr[-2000:]}", file=sys.stderr)
-                    continue
-                data = json.load(open(out.name))
-                # Short benchmarks are noisy on a shared 2-core VM: run them 5 times, keep the median.
-                first = data["benchmarks"][0]
-                first_ms = first["real_time"] if first["time_unit"] == "ms" else first["real_time"] / 1e6
-                if first_ms < MEDIAN_BELOW_MS:
-                    r = subprocess.run([exe, f"--benchmark_filter=^{re.escape(name)}$", f"--benchmark_out={out.name}",
-                                        "--benchmark_out_format=json", "--benchmark_repetitions=5",
-                                        "--benchmark_report_aggregates_only=true"], capture_output=True, text=True)
-                    if r.returncode == 0:
-                        agg = json.load(open(out.name))["benchmarks"]
-                        data["benchmarks"] = [b for b in agg if b.get("aggregate_name") == "median"] or data["benchmarks"]
-            for b in data["benchmarks"]:
-                task, dataset = b["name"].split("/")[:2]
-                ms = b["real_time"] if b["time_unit"] == "ms" else b["real_time"] / 1e6
-                extra = {k: v for k, v in b.items() if k not in (
-                    "name", "run_name", "run_type", "repetitions", "repetition_index", "threads", "iterations",
-                    "real_time", "cpu_time", "time_unit", "family_index", "per_family_instance_index",
-                    "aggregate_name", "aggregate_unit", "label")}
-                rows.append({"impl": impl, "task": task, "dataset": dataset, "ms": ms, **extra})
+            print(f"compare: {impl}: {name}", file=sys.stderr, flush=True)
+            records = run_benchmark(exe, name)
+            if records:
+                first[(impl, name)] = (exe, records)
+                order.append((impl, name))
+    short = {}
+    for key in order:
+        exe, records = first[key]
+        if real_ms(records[0]) < MEDIAN_BELOW_MS:
+            short.setdefault(key[1], []).append((key[0], exe))
+    times = {key: [] for name, group in short.items() for key in ((impl, name) for impl, _ in group)}
+    for name, group in short.items():
+        print(f"compare: {ROUNDS} interleaved rounds of {name} ({', '.join(i for i, _ in group)})",
+              file=sys.stderr, flush=True)
+        for _ in range(ROUNDS):
+            for impl, exe in group:
+                records = run_benchmark(exe, name)
+                if records:
+                    times[(impl, name)].append(real_ms(records[0]))
+    rows = []
+    for impl, name in order:
+        _, records = first[(impl, name)]
+        for b in records:
+            task, dataset = b["name"].split("/")[:2]
+            samples = sorted(times.get((impl, name), []))
+            ms = samples[len(samples) // 2] if samples else real_ms(b)
+            extra = {k: v for k, v in b.items() if k not in (
+                "name", "run_name", "run_type", "repetitions", "repetition_index", "threads", "iterations",
+                "real_time", "cpu_time", "time_unit", "family_index", "per_family_instance_index",
+                "aggregate_name", "aggregate_unit", "label")}
+            rows.append({"impl": impl, "task": task, "dataset": dataset, "ms": ms, **extra})
     return rows
 
 
@@ -172,8 +204,8 @@ def main():
     uname = os.uname()
     lines = [f"# Benchmark results ({datetime.date.today()}, {os.cpu_count()} cores, {uname.sysname} "
              f"{uname.release})", "", f"Produced by `bench/compare.py --bin {a.bin}`" +
-             (f" --filter '{a.filter}'" if a.filter else "") + "; wall-clock times, the median of 5 runs for "
-             "benchmarks under 3 s.", ""]
+             (f" --filter '{a.filter}'" if a.filter else "") + "; wall-clock times; benchmarks under 3 s: the median of 5 runs, "
+             "each run beside the peers' runs of the same task (interleaved rounds).", ""]
     lines += core_section(rows) + render_section(rows) + simplify_section(rows)
     text = "\n".join(lines) + "\n"
     open(a.out, "w").write(text)
