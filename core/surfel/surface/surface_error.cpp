@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <numbers>
 #include <numeric>
 #include <random>
 
@@ -30,7 +31,7 @@ std::vector<double> SampleAreas(const KdTree& tree, std::span<const Vec3f> sampl
     const KnnTable knn = tree.KnnBatch(samples, k + 1);  // the sample itself comes first
     for (std::size_t i = 0; i < samples.size(); ++i) {
         const double r2 = knn.Dist2(i)[k];
-        area[i] = std::isfinite(r2) ? 3.14159265358979323846 * r2 / k : 0.0;
+        area[i] = std::isfinite(r2) ? std::numbers::pi * r2 / k : 0.0;
     }
     std::vector<double> sorted = area;
     std::nth_element(sorted.begin(), sorted.begin() + static_cast<std::ptrdiff_t>(sorted.size() / 2), sorted.end());

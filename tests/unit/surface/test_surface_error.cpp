@@ -32,7 +32,7 @@ TEST(SurfaceError, OffsetSphereMeasuresTheOffset) {
     EXPECT_NEAR(e.avg_relative(), 0.02 / e.diagonal, 1e-4);
 }
 
-// The notes' Delta_avg is an area integral (Q uniform by area). A sphere sampled ten times more
+// The notes' Delta_avg is an area integral (Q uniform by area). A sphere sampled nine times more
 // densely at the poles than at the equator, against the same sphere moved by t along z: the
 // distance is about t |cos theta|, whose mean over the sphere's area is t / 2. The plain mean over
 // the samples leans to the poles, where the distance is largest: t E[|c| (1 + 8c^2)] / E[1 + 8c^2]
