@@ -127,7 +127,13 @@ void RegisterSurfaceCommands(CLI::App& app) {
         sub->add_option("--degree", a->opt.degree, "MLS degree of the projection onto OTHER (the notes use 1)")->default_val(2)->check(CLI::Range(0, 2));
         sub->add_option("--seed", a->opt.seed, "Seed for the sample subset")->default_val(1);
         AddCommonFlags(sub, &a->flags);
-        sub->footer("Example:\n  surfel error bunny.ply bunny_simplified.ply --json");
+        sub->footer(
+            "Each sample of REFERENCE is projected onto its own MLS surface S, giving q; d is the distance\n"
+            "from q to its MLS projection onto OTHER's surface S'. `max` is the largest d, `avg` the mean over\n"
+            "S's area (each sample counts for the area it stands for, as in the notes' 2.4.1), and\n"
+            "`avg_per_sample` the plain mean over the samples; *_relative divide by REFERENCE's\n"
+            "bounding-box diagonal.\n"
+            "Example:\n  surfel error bunny.ply bunny_simplified.ply --json");
         sub->callback([a] { RunError(*a); });
     }
 }
