@@ -17,12 +17,9 @@
 
 namespace surfel {
 
-namespace {
-// eta = 1 / sqrt(rho) with rho = k / (pi r^2) (notes 1.1.1): the spacing of k samples in a disc of radius r.
 float SpacingFromRadius(float r, int k) {
     return r > 0 ? static_cast<float>(std::sqrt(std::numbers::pi * double(r) * r / k)) : 0.0f;
 }
-}  // namespace
 
 namespace {
 SamplingDensity DensityFromRadii(std::vector<float> radius, int k) {

@@ -27,6 +27,10 @@ SamplingDensity ComputeSamplingDensity(const KdTree& tree, int k = 6, const Prog
 /// The same from the positions alone, for callers that need no kd-tree.
 SamplingDensity ComputeSamplingDensity(std::span<const Vec3f> points, int k = 6);
 
+/// The spacing eta = 1 / sqrt(rho), rho = k / (pi r^2) (notes 1.1.1), of a sample whose k-th
+/// nearest other sample lies at distance r: the side of the area 1 / rho the sample stands for.
+float SpacingFromRadius(float r, int k);
+
 /// The median of the spacing eta over at most `max_samples` points (an even stride through the
 /// cloud; all of them when it is smaller): what DefaultScale needs, without a density per point.
 float MedianSpacing(const KdTree& tree, int k = 6, std::size_t max_samples = 20000);

@@ -2,12 +2,12 @@
 
 #include <algorithm>
 #include <cmath>
-#include <numbers>
 #include <numeric>
 #include <random>
 
 #include "surfel/base/error.h"
 #include "surfel/spatial/kd_tree.h"
+#include "surfel/surface/local_analysis.h"
 #include "surfel/surface/mls.h"
 
 namespace surfel {
@@ -19,19 +19,19 @@ struct Sums {
     std::size_t n = 0, failed = 0;
 };
 
-// The area of S each sample of P stands for: 1 / rho with rho = k / (pi r_k^2) from its k = 16
-// nearest other samples (notes 1.1.1). Capped at kAreaCap times the median so that a stray
-// sample far from the rest cannot dominate the mean.
+// The area of S each sample of P stands for: 1 / rho = eta^2 (SpacingFromRadius, notes 1.1.1)
+// from its k = 16 nearest other samples. Capped at kAreaCap times the median so that a stray
+// sample far from the rest cannot dominate the mean. `tree` holds at least 2 points.
 constexpr int kAreaNeighbors = 16;
 constexpr double kAreaCap = 64.0;
 std::vector<double> SampleAreas(const KdTree& tree, std::span<const Vec3f> samples) {
-    std::vector<double> area(samples.size(), 1.0);
+    if (samples.empty()) return {};
     const int k = std::min<int>(kAreaNeighbors, static_cast<int>(tree.size()) - 1);
-    if (k < 1 || samples.empty()) return area;
     const KnnTable knn = tree.KnnBatch(samples, k + 1);  // the sample itself comes first
+    std::vector<double> area(samples.size());
     for (std::size_t i = 0; i < samples.size(); ++i) {
-        const double r2 = knn.Dist2(i)[k];
-        area[i] = std::isfinite(r2) ? std::numbers::pi * r2 / k : 0.0;
+        const double eta = SpacingFromRadius(std::sqrt(knn.Dist2(i)[k]), k);
+        area[i] = eta * eta;
     }
     std::vector<double> sorted = area;
     std::nth_element(sorted.begin(), sorted.begin() + static_cast<std::ptrdiff_t>(sorted.size() / 2), sorted.end());
