@@ -5,6 +5,7 @@
 #include <string_view>
 
 #include "surfel/base/error.h"
+#include "surfel/io/cloud_io.h"
 #include "surfel/io/ply.h"
 
 extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {

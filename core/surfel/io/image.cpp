@@ -8,7 +8,7 @@
 #include <filesystem>
 
 #include "surfel/base/error.h"
-#include "surfel/io/ply.h"
+#include "surfel/io/file_bytes.h"
 
 namespace surfel {
 

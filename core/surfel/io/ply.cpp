@@ -5,21 +5,20 @@
 #include <charconv>
 #include <cmath>
 #include <cstring>
-#include <filesystem>
-#include <fstream>
 #include <optional>
 #include <sstream>
 
 #include "surfel/base/error.h"
+#include "surfel/io/file_bytes.h"
+#include "surfel/io/text_internal.h"
 
 namespace surfel {
 namespace {
 
-// ---- Errors ---------------------------------------------------------------------------------
-
-[[noreturn]] void Fail(std::string_view file, const std::string& message) {
-    throw Error(ErrorCode::kInvalidArgument, std::string(file) + ": " + message);
-}
+using io_internal::AppendFloatAscii;
+using io_internal::Fail;
+using io_internal::Quote;
+using io_internal::Tokenize;
 
 // ---- Header model ---------------------------------------------------------------------------
 
@@ -77,26 +76,6 @@ std::optional<ScalarType> ParseScalarType(std::string_view s) {
 }
 
 bool IsFloatType(ScalarType t) { return t == ScalarType::kFloat32 || t == ScalarType::kFloat64; }
-
-std::vector<std::string_view> Tokenize(std::string_view line) {
-    std::vector<std::string_view> out;
-    std::size_t i = 0;
-    while (i < line.size()) {
-        while (i < line.size() && (line[i] == ' ' || line[i] == '\t' || line[i] == '\r')) ++i;
-        std::size_t j = i;
-        while (j < line.size() && line[j] != ' ' && line[j] != '\t' && line[j] != '\r') ++j;
-        if (j > i) out.push_back(line.substr(i, j - i));
-        i = j;
-    }
-    return out;
-}
-
-std::string Quote(std::string_view s) {
-    std::string q = "'";
-    for (char c : s.substr(0, 40)) q += (static_cast<unsigned char>(c) < 32 || c == 127) ? '?' : c;
-    if (s.size() > 40) q += "...";
-    return q + "'";
-}
 
 Header ParseHeader(std::string_view data, std::string_view file, const PlyReadOptions& opt) {
     Header h;
@@ -646,12 +625,6 @@ void AppendAscii(std::string& out, ScalarType t, double v) {
     out.append(buf, r.ptr);
 }
 
-void AppendFloatAscii(std::string& out, float v) {
-    char buf[32];
-    auto r = std::to_chars(buf, buf + sizeof buf, v);
-    out.append(buf, r.ptr);
-}
-
 double ColorOut(const PointCloud& c, float v) {
     if (c.color_type == ScalarType::kUInt8) return std::lround(std::clamp(v, 0.0f, 1.0f) * 255.0f);
     return v;
@@ -726,45 +699,7 @@ std::string FormatPly(const PointCloud& cloud, const PlyWriteOptions& options) {
     return out;
 }
 
-// ---- Files ------------------------------------------------------------------------------------------
-
-std::string ReadFileBytes(const std::string& path) {
-    std::error_code ec;
-    if (std::filesystem::is_directory(path, ec)) throw Error(ErrorCode::kInvalidArgument, path + ": is a directory, not a file");
-    std::ifstream in(path, std::ios::binary);
-    if (!in) throw Error(ErrorCode::kNotFound, path + ": cannot open file (" + std::strerror(errno) + ")");
-    in.seekg(0, std::ios::end);
-    const auto size = in.tellg();
-    in.seekg(0, std::ios::beg);
-    std::string bytes;
-    if (size > 0) {
-        bytes.resize(static_cast<std::size_t>(size));
-        in.read(bytes.data(), size);
-        if (in.gcount() != size) throw Error(ErrorCode::kInternal, path + ": short read");
-    } else {  // pipes and special files report no size
-        std::ostringstream os;
-        os << in.rdbuf();
-        bytes = os.str();
-    }
-    return bytes;
-}
-
-void WriteFileBytes(const std::string& path, std::string_view bytes) {
-    const std::string tmp = path + ".tmp-surfel";
-    {
-        std::ofstream out(tmp, std::ios::binary | std::ios::trunc);
-        if (!out) throw Error(ErrorCode::kNotFound, path + ": cannot create file (" + std::strerror(errno) + ")");
-        out.write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
-        out.flush();
-        if (!out) throw Error(ErrorCode::kInternal, path + ": write failed (" + std::strerror(errno) + ")");
-    }
-    std::error_code ec;
-    std::filesystem::rename(tmp, path, ec);
-    if (ec) {
-        std::filesystem::remove(tmp, ec);
-        throw Error(ErrorCode::kNotFound, path + ": cannot create file (" + ec.message() + ")");
-    }
-}
+// ---- Files and sniffing ---------------------------------------------------------------------------
 
 PointCloud ReadPly(const std::string& path, const PlyReadOptions& options, PlyHeaderInfo* info) {
     return ParsePly(ReadFileBytes(path), path, options, info);
@@ -774,86 +709,23 @@ void WritePly(const PointCloud& cloud, const std::string& path, const PlyWriteOp
     WriteFileBytes(path, FormatPly(cloud, options));
 }
 
-// ---- XYZ --------------------------------------------------------------------------------------------
+bool HasPlyMagic(std::string_view bytes) { return bytes.starts_with("ply\n") || bytes.starts_with("ply\r\n"); }
 
-PointCloud ParseXyz(std::string_view data, std::string_view file, std::uint64_t max_points) {
-    PointCloud cloud;
+PlyFormat SniffPlyFormat(std::string_view bytes) {
     std::size_t pos = 0;
-    int line_no = 0;
-    int columns = 0;
-    while (pos < data.size()) {
-        std::size_t end = data.find('\n', pos);
-        if (end == std::string_view::npos) end = data.size();
-        std::string_view line = data.substr(pos, end - pos);
+    while (pos < bytes.size() && pos < PlyReadOptions{}.max_header_bytes) {
+        std::size_t end = bytes.find('\n', pos);
+        if (end == std::string_view::npos) end = bytes.size();
+        const auto tok = Tokenize(bytes.substr(pos, end - pos));
         pos = end + 1;
-        ++line_no;
-        if (auto hash = line.find('#'); hash != std::string_view::npos) line = line.substr(0, hash);
-        auto tok = Tokenize(line);
-        if (tok.empty()) continue;
-        const std::string where = "line " + std::to_string(line_no) + ": ";
-        if (tok.size() != 3 && tok.size() != 6)
-            Fail(file, where + "expected 3 values (x y z) or 6 (x y z nx ny nz), found " + std::to_string(tok.size()));
-        if (columns == 0) columns = static_cast<int>(tok.size());
-        if (static_cast<int>(tok.size()) != columns)
-            Fail(file, where + "has " + std::to_string(tok.size()) + " values but earlier lines have " + std::to_string(columns));
-        if (cloud.size() >= max_points)
-            throw Error(ErrorCode::kResourceExhausted, std::string(file) + ": " + where + "more than " + std::to_string(max_points) + " points");
-        float v[6];
-        static const char* kNames[] = {"x", "y", "z", "nx", "ny", "nz"};
-        for (std::size_t k = 0; k < tok.size(); ++k) {
-            auto [p, ec] = std::from_chars(tok[k].data(), tok[k].data() + tok[k].size(), v[k]);
-            if (ec != std::errc() || p != tok[k].data() + tok[k].size())
-                Fail(file, where + "field '" + kNames[k] + "': " + Quote(tok[k]) + " is not a number");
-            if (!std::isfinite(v[k])) Fail(file, where + "field '" + kNames[k] + "': value is not finite");
-        }
-        cloud.positions.emplace_back(v[0], v[1], v[2]);
-        if (columns == 6) cloud.normals.emplace_back(v[3], v[4], v[5]);
+        if (tok.empty() || tok[0] == "comment" || tok[0] == "obj_info") continue;
+        if (tok[0] == "end_header") break;
+        if (tok[0] != "format" || tok.size() < 2) continue;
+        if (tok[1] == "binary_little_endian") return PlyFormat::kBinaryLittleEndian;
+        if (tok[1] == "binary_big_endian") return PlyFormat::kBinaryBigEndian;
+        break;
     }
-    return cloud;
-}
-
-std::string FormatXyz(const PointCloud& cloud) {
-    std::string out;
-    out.reserve(cloud.size() * 40);
-    for (std::size_t i = 0; i < cloud.size(); ++i) {
-        for (int k = 0; k < 3; ++k) {
-            if (k) out += ' ';
-            AppendFloatAscii(out, cloud.positions[i][k]);
-        }
-        if (cloud.has_normals())
-            for (int k = 0; k < 3; ++k) { out += ' '; AppendFloatAscii(out, cloud.normals[i][k]); }
-        out += '\n';
-    }
-    return out;
-}
-
-// ---- Dispatch ---------------------------------------------------------------------------------------
-
-CloudFileFormat FormatFromPath(const std::string& path) {
-    std::string ext = std::filesystem::path(path).extension().string();
-    std::transform(ext.begin(), ext.end(), ext.begin(), [](unsigned char c) { return std::tolower(c); });
-    if (ext == ".ply") return CloudFileFormat::kPly;
-    if (ext == ".xyz" || ext == ".txt" || ext == ".pts") return CloudFileFormat::kXyz;
-    throw Error(ErrorCode::kInvalidArgument,
-                path + ": unknown point-cloud file extension '" + ext + "' (expected .ply, .xyz, .txt or .pts)");
-}
-
-PointCloud ParsePointCloud(std::string_view data, std::string_view name, const PlyReadOptions& options) {
-    if (data.starts_with("ply\n") || data.starts_with("ply\r\n")) return ParsePly(data, name, options);
-    return ParseXyz(data, name, options.max_points);
-}
-
-PointCloud ReadPointCloud(const std::string& path, const PlyReadOptions& options, PlyHeaderInfo* info) {
-    const std::string bytes = ReadFileBytes(path);
-    if (bytes.starts_with("ply\n") || bytes.starts_with("ply\r\n")) return ParsePly(bytes, path, options, info);
-    return ParseXyz(bytes, path, options.max_points);
-}
-
-void WritePointCloud(const PointCloud& cloud, const std::string& path, bool ascii) {
-    if (FormatFromPath(path) == CloudFileFormat::kXyz) return WriteFileBytes(path, FormatXyz(cloud));
-    PlyWriteOptions opt;
-    opt.format = ascii ? PlyFormat::kAscii : PlyFormat::kBinaryLittleEndian;
-    WritePly(cloud, path, opt);
+    return PlyFormat::kAscii;
 }
 
 }  // namespace surfel

@@ -1,6 +1,6 @@
 #pragma once
 /// \file
-/// PLY and XYZ point-cloud readers and writers.
+/// PLY point-cloud reader and writer (XYZ is in xyz.h, the choice of format in cloud_io.h).
 ///
 /// PLY: ascii, binary_little_endian and binary_big_endian; every scalar type and alias
 /// (char/int8, uchar/uint8, short/int16, ushort/uint16, int/int32, uint/uint32, float/float32,
@@ -23,6 +23,7 @@ namespace surfel {
 
 /// Encoding of a PLY body.
 enum class PlyFormat { kAscii, kBinaryLittleEndian, kBinaryBigEndian };
+/// The header keyword of a format: "ascii", "binary_little_endian" or "binary_big_endian".
 const char* PlyFormatName(PlyFormat format);
 
 /// Limits that protect a reader of untrusted files.
@@ -69,33 +70,13 @@ std::string FormatPly(const PointCloud& cloud, const PlyWriteOptions& options = 
 /// Writes a PLY file. Throws Error(kNotFound) when the file cannot be created.
 void WritePly(const PointCloud& cloud, const std::string& path, const PlyWriteOptions& options = {});
 
-/// Parses XYZ text: one point per line as `x y z` or `x y z nx ny nz` (the same count on every
-/// line), `#` starts a comment, blank lines are ignored.
-PointCloud ParseXyz(std::string_view data, std::string_view name, std::uint64_t max_points = 200'000'000);
-/// Serialises positions (and normals when present) as XYZ text, shortest round-trip decimals.
-std::string FormatXyz(const PointCloud& cloud);
+/// True when `bytes` starts with the PLY magic line ("ply" then LF or CR LF).
+bool HasPlyMagic(std::string_view bytes);
 
-/// File formats known to ReadPointCloud/WritePointCloud.
-enum class CloudFileFormat { kPly, kXyz };
-
-/// Chooses a format from the file name's extension (.ply, .xyz, .txt, .pts); otherwise, for
-/// reading, from the content ("ply" magic). Throws Error(kInvalidArgument) for unknown ones.
-CloudFileFormat FormatFromPath(const std::string& path);
-
-/// Parses PLY or XYZ from memory, sniffing the "ply" magic.
-PointCloud ParsePointCloud(std::string_view data, std::string_view name,
-                           const PlyReadOptions& options = {});
-
-/// Reads a PLY or XYZ file, by its content.
-PointCloud ReadPointCloud(const std::string& path, const PlyReadOptions& options = {},
-                          PlyHeaderInfo* info = nullptr);
-
-/// Writes PLY (binary unless `ascii`) or XYZ, chosen by the file name's extension.
-void WritePointCloud(const PointCloud& cloud, const std::string& path, bool ascii = false);
-
-/// Reads a whole file into memory. Throws Error(kNotFound) when it cannot be read.
-std::string ReadFileBytes(const std::string& path);
-/// Writes bytes to a file (atomically: a temporary file renamed into place).
-void WriteFileBytes(const std::string& path, std::string_view bytes);
+/// The encoding named by the header's `format` line, found without parsing the file (comment
+/// and obj_info lines before it are skipped). kAscii when no such line comes before
+/// `end_header` or within PlyReadOptions{}.max_header_bytes; for sniffing only: ParsePly
+/// validates the header.
+PlyFormat SniffPlyFormat(std::string_view bytes);
 
 }  // namespace surfel

@@ -6,7 +6,9 @@
 
 #include "surfel/base/error.h"
 #include "surfel/base/shapes.h"
+#include "surfel/io/cloud_io.h"
 #include "surfel/io/ply.h"
+#include "surfel/io/xyz.h"
 
 namespace surfel {
 namespace {

@@ -5,6 +5,7 @@
 
 #include "surfel/base/error.h"
 #include "surfel/io/ply.h"
+#include "surfel/io/xyz.h"
 
 namespace surfel {
 namespace {

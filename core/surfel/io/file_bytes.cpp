@@ -1,0 +1,52 @@
+#include "surfel/io/file_bytes.h"
+
+#include <cerrno>
+#include <cstring>
+#include <filesystem>
+#include <fstream>
+#include <sstream>
+
+#include "surfel/base/error.h"
+
+namespace surfel {
+
+std::string ReadFileBytes(const std::string& path) {
+    std::error_code ec;
+    if (std::filesystem::is_directory(path, ec))
+        throw Error(ErrorCode::kInvalidArgument, path + ": is a directory, not a file");
+    std::ifstream in(path, std::ios::binary);
+    if (!in) throw Error(ErrorCode::kNotFound, path + ": cannot open file (" + std::strerror(errno) + ")");
+    in.seekg(0, std::ios::end);
+    const auto size = in.tellg();
+    in.seekg(0, std::ios::beg);
+    std::string bytes;
+    if (size > 0) {
+        bytes.resize(static_cast<std::size_t>(size));
+        in.read(bytes.data(), size);
+        if (in.gcount() != size) throw Error(ErrorCode::kInternal, path + ": short read");
+    } else {  // pipes and special files report no size
+        std::ostringstream os;
+        os << in.rdbuf();
+        bytes = os.str();
+    }
+    return bytes;
+}
+
+void WriteFileBytes(const std::string& path, std::string_view bytes) {
+    const std::string tmp = path + ".tmp-surfel";
+    {
+        std::ofstream out(tmp, std::ios::binary | std::ios::trunc);
+        if (!out) throw Error(ErrorCode::kNotFound, path + ": cannot create file (" + std::strerror(errno) + ")");
+        out.write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
+        out.flush();
+        if (!out) throw Error(ErrorCode::kInternal, path + ": write failed (" + std::strerror(errno) + ")");
+    }
+    std::error_code ec;
+    std::filesystem::rename(tmp, path, ec);
+    if (ec) {
+        std::filesystem::remove(tmp, ec);
+        throw Error(ErrorCode::kNotFound, path + ": cannot create file (" + ec.message() + ")");
+    }
+}
+
+}  // namespace surfel
