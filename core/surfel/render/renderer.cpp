@@ -6,11 +6,13 @@
 
 #include <atomic>
 #include <cmath>
+#include <exception>
 #include <limits>
 #include <mutex>
 #include <numbers>
 
 #include "surfel/base/error.h"
+#include "surfel/base/validate.h"
 
 namespace surfel {
 
@@ -42,30 +44,108 @@ Camera Camera::Framing(const BoundingBox& box, int width, int height, const Vec3
 
 namespace {
 
-// Per-ray context: Embree hands it to the callbacks (the documented way to pass ray data).
+// ---- Validation -----------------------------------------------------------------------------
+
+void ValidateCamera(const Camera& cam) {
+    CheckRange("width", cam.width, 1, kMaxImageSide);
+    CheckRange("height", cam.height, 1, kMaxImageSide);
+    CheckRange("camera.fovy_deg", cam.fovy_deg, kMinFovyDeg, kMaxFovyDeg);
+    CheckFinite("camera.eye", cam.eye);
+    CheckFinite("camera.target", cam.target);
+    CheckFinite("camera.up", cam.up);
+    if ((cam.target - cam.eye).norm() == 0) InvalidField("camera", "eye and target must differ");
+    if ((cam.target - cam.eye).normalized().cross(cam.up).norm() < 1e-9)
+        InvalidField("camera.up", "must be non-zero and not parallel to the view direction");
+}
+
+void ValidateLights(const std::vector<Light>& lights) {
+    if (lights.size() > std::size_t(kMaxLights))
+        InvalidField("lights", "at most " + std::to_string(kMaxLights) + " lights");
+    for (std::size_t i = 0; i < lights.size(); ++i) {
+        const Light& L = lights[i];
+        const std::string f = "lights[" + std::to_string(i) + "]";
+        CheckFinite(f + ".vector", L.vector);
+        if (L.kind == Light::Kind::kDirectional && L.vector.norm() == 0)
+            InvalidField(f + ".vector", "a directional light needs a non-zero direction");
+        CheckFinite(f + ".color", L.color);
+        CheckRange(f + ".intensity", L.intensity, 0, kMaxLightIntensity);
+    }
+}
+
+}  // namespace
+
+void RenderOptions::Validate() const {
+    ValidateCamera(camera);
+    CheckRange("samples_per_pixel", samples_per_pixel, 1, kMaxSamplesPerPixel);
+    ValidateLights(lights);
+    CheckFinite("background", background);
+    CheckFinite("albedo", albedo);
+    CheckAtLeast("ambient", ambient, 0);
+    CheckAtLeast("specular", specular, 0);
+    CheckAtLeast("shininess", shininess, 0);
+    surface.Validate();
+    CheckRange("tile", tile, 1, kMaxImageSide);
+}
+
+namespace {
+
+// ---- Embree callbacks ------------------------------------------------------------------------
+// Callbacks from C never throw (conventions, "Errors"): each one runs its body in Guarded, which
+// keeps the first exception in the context and skips the work of later callbacks of the same
+// ray; Intersect() and Occluded() rethrow it once Embree has returned.
+
+// Per-ray context: Embree hands it to the callbacks (the documented way to pass ray data). The
+// Embree part must come first: the callbacks cast the RTCIntersectContext* back to it.
 struct RayContext {
     RTCIntersectContext embree;
     std::optional<AaHit> hit;
     AaCounters counters;
     double gamma_min = -1.0, gamma_max = 2.0;  // shadow rays: only balls with gamma in [min, max)
+    const HitFilter* filter = nullptr;         // RenderOptions::hit_filter; null = accept every hit
+    std::exception_ptr error;                  // the first exception a callback caught
 };
 
 struct SceneData {
     const AaSurface* surface;
     const PointCloud* cloud;
+    // The first exception of a bounds callback (those run on Embree's build threads).
+    std::mutex build_mutex;
+    std::exception_ptr build_error;
 };
 
+// Runs body(); an exception is kept in *error (the first only) instead of leaving the callback.
+template <typename Body>
+void Guarded(std::exception_ptr* error, Body&& body) noexcept {
+    try {
+        body();
+    } catch (...) {
+        if (!*error) *error = std::current_exception();
+    }
+}
+
+// Whether the hit filter (if any) lets the ray accept `hit`.
+bool Accepts(const RayContext& ctx, const AaHit& hit) { return !ctx.filter || !*ctx.filter || (*ctx.filter)(hit); }
+
 void BoundsFn(const RTCBoundsFunctionArguments* args) {
-    const auto* s = static_cast<const SceneData*>(args->geometryUserPtr);
-    const Vec3f& c = s->cloud->positions[args->primID];
-    const float r = s->surface->BallRadius(args->primID);
+    auto* s = static_cast<SceneData*>(args->geometryUserPtr);
     RTCBounds* b = args->bounds_o;
-    b->lower_x = c.x() - r;
-    b->lower_y = c.y() - r;
-    b->lower_z = c.z() - r;
-    b->upper_x = c.x() + r;
-    b->upper_y = c.y() + r;
-    b->upper_z = c.z() + r;
+    try {
+        const Vec3f& c = s->cloud->positions[args->primID];
+        const float r = s->surface->BallRadius(args->primID);
+        b->lower_x = c.x() - r;
+        b->lower_y = c.y() - r;
+        b->lower_z = c.z() - r;
+        b->upper_x = c.x() + r;
+        b->upper_y = c.y() + r;
+        b->upper_z = c.z() + r;
+    } catch (...) {
+        // An empty box (lower > upper): the builder leaves the primitive out; the build is
+        // abandoned anyway once rtcCommitScene returns.
+        b->lower_x = b->lower_y = b->lower_z = std::numeric_limits<float>::infinity();
+        b->upper_x = b->upper_y = b->upper_z = -std::numeric_limits<float>::infinity();
+        std::lock_guard lock(s->build_mutex);
+        if (!s->build_error) s->build_error = std::current_exception();
+    }
 }
 
 // Ray against ball i: [t0, t1] within [tnear, tfar], and the priority gamma = (rho - d) / rho.
@@ -83,39 +163,51 @@ bool BallInterval(const SceneData& s, unsigned prim, const Vec3d& o, const Vec3d
     return *t0 <= *t1;
 }
 
+// Nearest hit: the section-4 iteration in ball primID; a converged hit nearer than the ray's
+// current one, and accepted by the hit filter, becomes the ray's hit.
 void IntersectFn(const RTCIntersectFunctionNArguments* args) {
     if (!args->valid[0]) return;
-    const auto* s = static_cast<const SceneData*>(args->geometryUserPtr);
     auto* ctx = reinterpret_cast<RayContext*>(args->context);
-    RTCRayHit* rh = reinterpret_cast<RTCRayHit*>(args->rayhit);  // N == 1 with rtcIntersect1
-    const Vec3d o(rh->ray.org_x, rh->ray.org_y, rh->ray.org_z), d(rh->ray.dir_x, rh->ray.dir_y, rh->ray.dir_z);
-    double t0, t1, gamma;
-    if (!BallInterval(*s, args->primID, o, d, rh->ray.tnear, rh->ray.tfar, &t0, &t1, &gamma)) return;
-    auto hit = s->surface->IntersectInBall(args->primID, o, d, t0, t1, &ctx->counters,
-                                           ctx->hit ? ctx->hit->t : std::numeric_limits<double>::infinity());
-    if (!hit || hit->t >= rh->ray.tfar) return;
-    rh->ray.tfar = static_cast<float>(hit->t);
-    rh->hit.Ng_x = static_cast<float>(hit->normal.x());
-    rh->hit.Ng_y = static_cast<float>(hit->normal.y());
-    rh->hit.Ng_z = static_cast<float>(hit->normal.z());
-    rh->hit.u = rh->hit.v = 0.0f;
-    rh->hit.primID = args->primID;
-    rh->hit.geomID = args->geomID;
-    rh->hit.instID[0] = args->context->instID[0];
-    ctx->hit = hit;
+    if (ctx->error) return;
+    Guarded(&ctx->error, [&] {
+        const auto* s = static_cast<const SceneData*>(args->geometryUserPtr);
+        RTCRayHit* rh = reinterpret_cast<RTCRayHit*>(args->rayhit);  // N == 1 with rtcIntersect1
+        const Vec3d o(rh->ray.org_x, rh->ray.org_y, rh->ray.org_z), d(rh->ray.dir_x, rh->ray.dir_y, rh->ray.dir_z);
+        double t0, t1, gamma;
+        if (!BallInterval(*s, args->primID, o, d, rh->ray.tnear, rh->ray.tfar, &t0, &t1, &gamma)) return;
+        auto hit = s->surface->IntersectInBall(args->primID, o, d, t0, t1, &ctx->counters,
+                                               ctx->hit ? ctx->hit->t : std::numeric_limits<double>::infinity());
+        if (!hit || hit->t >= rh->ray.tfar) return;
+        if (!Accepts(*ctx, *hit)) return;
+        rh->ray.tfar = static_cast<float>(hit->t);
+        rh->hit.Ng_x = static_cast<float>(hit->normal.x());
+        rh->hit.Ng_y = static_cast<float>(hit->normal.y());
+        rh->hit.Ng_z = static_cast<float>(hit->normal.z());
+        rh->hit.u = rh->hit.v = 0.0f;
+        rh->hit.primID = args->primID;
+        rh->hit.geomID = args->geomID;
+        rh->hit.instID[0] = args->context->instID[0];
+        ctx->hit = hit;
+    });
 }
 
+// Any hit: the ray is blocked (tfar = -inf) by a converged, accepted hit in a ball of the pass's
+// gamma range. A caught exception also ends the traversal.
 void OccludedFn(const RTCOccludedFunctionNArguments* args) {
     if (!args->valid[0]) return;
-    const auto* s = static_cast<const SceneData*>(args->geometryUserPtr);
     auto* ctx = reinterpret_cast<RayContext*>(args->context);
     RTCRay* ray = reinterpret_cast<RTCRay*>(args->ray);
-    const Vec3d o(ray->org_x, ray->org_y, ray->org_z), d(ray->dir_x, ray->dir_y, ray->dir_z);
-    double t0, t1, gamma;
-    if (!BallInterval(*s, args->primID, o, d, ray->tnear, ray->tfar, &t0, &t1, &gamma)) return;
-    if (gamma < ctx->gamma_min || gamma >= ctx->gamma_max) return;
-    if (s->surface->IntersectInBall(args->primID, o, d, t0, t1, &ctx->counters))
-        ray->tfar = -std::numeric_limits<float>::infinity();
+    if (ctx->error) return;
+    Guarded(&ctx->error, [&] {
+        const auto* s = static_cast<const SceneData*>(args->geometryUserPtr);
+        const Vec3d o(ray->org_x, ray->org_y, ray->org_z), d(ray->dir_x, ray->dir_y, ray->dir_z);
+        double t0, t1, gamma;
+        if (!BallInterval(*s, args->primID, o, d, ray->tnear, ray->tfar, &t0, &t1, &gamma)) return;
+        if (gamma < ctx->gamma_min || gamma >= ctx->gamma_max) return;
+        const auto hit = s->surface->IntersectInBall(args->primID, o, d, t0, t1, &ctx->counters);
+        if (hit && Accepts(*ctx, *hit)) ray->tfar = -std::numeric_limits<float>::infinity();
+    });
+    if (ctx->error) ray->tfar = -std::numeric_limits<float>::infinity();
 }
 
 // Deterministic per-pixel jitter (a hash, so the image is the same whatever the thread count).
@@ -129,7 +221,8 @@ double Jitter(std::uint64_t x) {
 
 class EmbreeScene {
 public:
-    EmbreeScene(const SceneData* data, std::size_t count) {
+    /// Builds the BVH over the balls; rethrows what a bounds callback caught.
+    EmbreeScene(SceneData* data, std::size_t count) {
         device_ = rtcNewDevice(nullptr);
         if (!device_) throw Error(ErrorCode::kInternal, "Embree device creation failed");
         scene_ = rtcNewScene(device_);
@@ -139,7 +232,7 @@ public:
         rtcSetSceneBuildQuality(scene_, RTC_BUILD_QUALITY_LOW);
         RTCGeometry g = rtcNewGeometry(device_, RTC_GEOMETRY_TYPE_USER);
         rtcSetGeometryUserPrimitiveCount(g, static_cast<unsigned>(count));
-        rtcSetGeometryUserData(g, const_cast<SceneData*>(data));
+        rtcSetGeometryUserData(g, data);
         rtcSetGeometryBoundsFunction(g, BoundsFn, nullptr);
         rtcSetGeometryIntersectFunction(g, IntersectFn);
         rtcSetGeometryOccludedFunction(g, OccludedFn);
@@ -147,9 +240,10 @@ public:
         rtcAttachGeometry(scene_, g);
         rtcReleaseGeometry(g);
         rtcCommitScene(scene_);
-        if (rtcGetDeviceError(device_) != RTC_ERROR_NONE) {
+        if (data->build_error || rtcGetDeviceError(device_) != RTC_ERROR_NONE) {
             rtcReleaseScene(scene_);
             rtcReleaseDevice(device_);
+            if (data->build_error) std::rethrow_exception(data->build_error);
             throw Error(ErrorCode::kInternal, "Embree scene build failed");
         }
     }
@@ -180,129 +274,190 @@ RTCRayHit MakeRay(const Vec3d& o, const Vec3d& d, double tnear, double tfar) {
     return rh;
 }
 
+// Traces the nearest hit (ctx->hit); rethrows what a callback caught.
+void Intersect(const EmbreeScene& scene, RayContext* ctx, RTCRayHit* rh) {
+    rtcIntersect1(scene.scene(), &ctx->embree, rh);
+    if (ctx->error) std::rethrow_exception(ctx->error);
+}
+
+// Traces an any-hit ray; true when it is blocked. Rethrows what a callback caught.
+bool Occluded(const EmbreeScene& scene, RayContext* ctx, RTCRay* ray) {
+    rtcOccluded1(scene.scene(), &ctx->embree, ray);
+    if (ctx->error) std::rethrow_exception(ctx->error);
+    return ray->tfar < 0;
+}
+
+// ---- The render, in layers -------------------------------------------------------------------
+// RenderTile -> RenderPixel -> EvaluatePixelSample -> Shade -> InShadow (after pbrt-v4's
+// ImageTileIntegrator::Render -> EvaluatePixelSample -> Li). Each layer sums its work into the
+// caller's RenderStats; only RenderTile's caller merges across threads.
+
+// What every layer of one render reads.
+struct Integrator {
+    const PointCloud& cloud;
+    const RenderOptions& opt;
+    const EmbreeScene& scene;
+    Camera::Frame frame;
+    std::vector<Light> lights;  // opt.lights, or the default light
+    double h;                   // the surface's scale
+    int strata;                 // ceil(sqrt(samples per pixel)): the jitter grid per side
+};
+
+// The samples of one pixel, summed.
+struct PixelSum {
+    Vec3d rgb = Vec3d::Zero();
+    Vec3d nearest_n = Vec3d::Zero();  // normal of the nearest hit
+    double coverage = 0;
+    double zmin = std::numeric_limits<double>::infinity();
+};
+
+// Occlusion: whether the shadow ray from `hit` (normal `n`, towards the camera) to a light in
+// direction `ldir` at distance `ldist` is blocked. It starts half an h off the surface so that it
+// does not find its own origin, and runs as the paper's section 5 says: first the balls the ray
+// passes near the centre (gamma priority), then the rest; each ball is tried in one pass only.
+bool InShadow(const Integrator& I, const AaHit& hit, const Vec3d& n, const Vec3d& ldir, double ldist,
+              RenderStats* stats) {
+    const Vec3d so = hit.position + 0.5 * I.h * n;
+    RayContext sctx;
+    rtcInitIntersectContext(&sctx.embree);
+    sctx.filter = &I.opt.hit_filter;
+    bool blocked = false;
+    for (const auto& [gmin, gmax] : {std::pair{0.5, 2.0}, std::pair{-1.0, 0.5}}) {
+        sctx.gamma_min = gmin;
+        sctx.gamma_max = gmax;
+        RTCRayHit sr = MakeRay(so, ldir, 0.0, ldist - 0.5 * I.h);
+        ++stats->shadow_rays;
+        if (Occluded(I.scene, &sctx, &sr.ray)) {
+            blocked = true;
+            break;
+        }
+    }
+    stats->surface.Add(sctx.counters);
+    return blocked;
+}
+
+// Shade: the radiance towards the eye from `hit` on the ray with unit direction `d`: ambient plus,
+// per unshadowed light, Lambert and Blinn-Phong terms. The side facing the camera is shaded.
+Vec3d Shade(const Integrator& I, const AaHit& hit, const Vec3d& d, RenderStats* stats) {
+    const RenderOptions& opt = I.opt;
+    Vec3d n = hit.normal;
+    if (n.dot(d) > 0) n = -n;
+    const Vec3d albedo = I.cloud.has_colors() ? Vec3d(hit.color[0], hit.color[1], hit.color[2]) : opt.albedo;
+    Vec3d c = opt.ambient * albedo;
+    for (const Light& L : I.lights) {
+        Vec3d ldir;
+        double ldist = std::numeric_limits<float>::infinity();
+        if (L.kind == Light::Kind::kDirectional) {
+            ldir = -L.vector.normalized();
+        } else {
+            ldir = L.vector - hit.position;
+            ldist = ldir.norm();
+            ldir /= ldist;
+        }
+        const double ndl = n.dot(ldir);
+        if (ndl <= 0) continue;
+        if (opt.shadows && InShadow(I, hit, n, ldir, ldist, stats)) continue;
+        const Vec3d hv = (ldir - d).normalized();
+        const Vec3d lc = L.color * L.intensity;
+        c += lc.cwiseProduct(albedo) * ndl + lc * (opt.specular * std::pow(std::max(0.0, n.dot(hv)), opt.shininess));
+    }
+    return c;
+}
+
+// Pixel sample s of pixel (x, y): the pixel centre with one sample, else a jittered stratum of the
+// strata x strata grid. Traces the primary ray and adds its colour, coverage, depth and normal.
+void EvaluatePixelSample(const Integrator& I, int x, int y, int s, PixelSum* sum, RenderStats* stats) {
+    const int spp = I.opt.samples_per_pixel, strata = I.strata;
+    double px = x + 0.5, py = y + 0.5;
+    if (spp > 1) {
+        const std::uint64_t key = (std::uint64_t(y) * I.opt.camera.width + x) * 1024 + s;
+        px = x + ((s % strata) + Jitter(key * 2)) / strata;
+        py = y + ((s / strata) % strata + Jitter(key * 2 + 1)) / strata;
+    }
+    const Vec3d d = I.frame.Direction(px, py);
+    RayContext ctx;
+    rtcInitIntersectContext(&ctx.embree);
+    ctx.filter = &I.opt.hit_filter;
+    RTCRayHit rh = MakeRay(I.opt.camera.eye, d, 0.0, std::numeric_limits<float>::infinity());
+    Intersect(I.scene, &ctx, &rh);
+    ++stats->primary_rays;
+    stats->surface.Add(ctx.counters);
+    if (!ctx.hit) {
+        sum->rgb += I.opt.background;
+        return;
+    }
+    ++stats->hits;
+    const AaHit& hit = *ctx.hit;
+    sum->coverage += 1.0;
+    if (hit.t < sum->zmin) {
+        sum->zmin = hit.t;
+        sum->nearest_n = hit.normal;
+    }
+    sum->rgb += Shade(I, hit, d, stats);
+}
+
+// Pixel (x, y): the mean of its samples into the image's channels (see RenderResult).
+void RenderPixel(const Integrator& I, int x, int y, Image* img, RenderStats* stats) {
+    const int spp = I.opt.samples_per_pixel;
+    PixelSum sum;
+    for (int s = 0; s < spp; ++s) EvaluatePixelSample(I, x, y, s, &sum, stats);
+    const Vec3d rgb = sum.rgb / spp;
+    img->At(x, y, 0) = float(rgb.x());
+    img->At(x, y, 1) = float(rgb.y());
+    img->At(x, y, 2) = float(rgb.z());
+    img->At(x, y, 3) = float(sum.coverage / spp);
+    img->At(x, y, 4) = std::isinf(sum.zmin) ? std::numeric_limits<float>::infinity() : float(sum.zmin);
+    img->At(x, y, 5) = float(sum.nearest_n.x());
+    img->At(x, y, 6) = float(sum.nearest_n.y());
+    img->At(x, y, 7) = float(sum.nearest_n.z());
+}
+
+// Tile `tile` (row-major over tiles_x tiles per row of tile x tile pixels, clipped to the image).
+void RenderTile(const Integrator& I, int tile, int tiles_x, Image* img, RenderStats* stats) {
+    const Camera& cam = I.opt.camera;
+    const int x0 = (tile % tiles_x) * I.opt.tile, y0 = (tile / tiles_x) * I.opt.tile;
+    for (int y = y0; y < std::min(y0 + I.opt.tile, cam.height); ++y)
+        for (int x = x0; x < std::min(x0 + I.opt.tile, cam.width); ++x) RenderPixel(I, x, y, img, stats);
+}
+
 }  // namespace
 
 RenderResult Render(const PointCloud& cloud, const RenderOptions& opt, const ProgressFn& progress) {
+    opt.Validate();
     const Camera& cam = opt.camera;
-    if (cam.width < 1 || cam.height < 1 || cam.width > 16384 || cam.height > 16384)
-        throw Error(ErrorCode::kInvalidArgument, "image size must be 1..16384 pixels per side, got " +
-                                                     std::to_string(cam.width) + "x" + std::to_string(cam.height));
-    if (!(cam.fovy_deg > 0 && cam.fovy_deg < 180)) throw Error(ErrorCode::kInvalidArgument, "fovy must be in (0, 180) degrees");
-    if ((cam.target - cam.eye).norm() == 0 || (cam.target - cam.eye).normalized().cross(cam.up).norm() < 1e-9)
-        throw Error(ErrorCode::kInvalidArgument, "camera: eye must differ from target and up must not be parallel to the view");
-    if (opt.samples_per_pixel < 1 || opt.samples_per_pixel > 1024)
-        throw Error(ErrorCode::kInvalidArgument, "samples per pixel must be 1..1024");
+
+    // Setup: the surface (neighbour search, ball radii) and the BVH over the balls.
     Stopwatch watch;
     const AaSurface surface(cloud, opt.surface);
-    const SceneData data{&surface, &cloud};
+    SceneData data{&surface, &cloud, {}, {}};
     const EmbreeScene scene(&data, cloud.size());
     const double setup_ms = watch.ElapsedMs();
 
+    // The camera frame, the lights (default: one over the camera's left shoulder), the image.
     const Camera::Frame frame = cam.MakeFrame();
     std::vector<Light> lights = opt.lights;
     if (lights.empty())
-        lights.push_back({Light::Kind::kDirectional, (frame.w - 0.6 * frame.v + 0.5 * frame.u).normalized(), {1, 1, 1}, 1.0});
+        lights.push_back(
+            {Light::Kind::kDirectional, (frame.w - 0.6 * frame.v + 0.5 * frame.u).normalized(), {1, 1, 1}, 1.0});
+    const Integrator integrator{cloud, opt, scene, frame, std::move(lights), surface.h(),
+                                static_cast<int>(std::ceil(std::sqrt(double(opt.samples_per_pixel))))};
     RenderResult result;
     Image& img = result.image;
     img.width = cam.width;
     img.height = cam.height;
     img.channels = {"R", "G", "B", "A", "Z", "N.X", "N.Y", "N.Z"};
     img.pixels.assign(std::size_t(img.width) * img.height * img.channels.size(), 0.0f);
-    const double h = surface.h();
-    const int spp = opt.samples_per_pixel;
-    const int strata = static_cast<int>(std::ceil(std::sqrt(double(spp))));
+
+    // The tiles, in parallel; each thread sums its stats and merges them once.
     const int tiles_x = (cam.width + opt.tile - 1) / opt.tile, tiles_y = (cam.height + opt.tile - 1) / opt.tile;
     ProgressTracker tracker(progress, double(tiles_x) * tiles_y, "render");
     std::mutex stats_mutex;
     RenderStats& st = result.stats;
-
     tbb::parallel_for(tbb::blocked_range<int>(0, tiles_x * tiles_y, 1), [&](const tbb::blocked_range<int>& range) {
         RenderStats local;
         for (int tile = range.begin(); tile != range.end(); ++tile) {
             tracker.Check();
-            const int x0 = (tile % tiles_x) * opt.tile, y0 = (tile / tiles_x) * opt.tile;
-            for (int y = y0; y < std::min(y0 + opt.tile, cam.height); ++y)
-                for (int x = x0; x < std::min(x0 + opt.tile, cam.width); ++x) {
-                    Vec3d rgb = Vec3d::Zero(), nearest_n = Vec3d::Zero();
-                    double coverage = 0, zmin = std::numeric_limits<double>::infinity();
-                    for (int s = 0; s < spp; ++s) {
-                        double px = x + 0.5, py = y + 0.5;
-                        if (spp > 1) {
-                            const std::uint64_t key = (std::uint64_t(y) * cam.width + x) * 1024 + s;
-                            px = x + ((s % strata) + Jitter(key * 2)) / strata;
-                            py = y + ((s / strata) % strata + Jitter(key * 2 + 1)) / strata;
-                        }
-                        const Vec3d d = frame.Direction(px, py);
-                        RayContext ctx;
-                        rtcInitIntersectContext(&ctx.embree);
-                        RTCRayHit rh = MakeRay(cam.eye, d, 0.0, std::numeric_limits<float>::infinity());
-                        rtcIntersect1(scene.scene(), &ctx.embree, &rh);
-                        ++local.primary_rays;
-                        local.surface.Add(ctx.counters);
-                        if (!ctx.hit) {
-                            rgb += opt.background;
-                            continue;
-                        }
-                        ++local.hits;
-                        const AaHit& hit = *ctx.hit;
-                        coverage += 1.0;
-                        if (hit.t < zmin) {
-                            zmin = hit.t;
-                            nearest_n = hit.normal;
-                        }
-                        Vec3d n = hit.normal;
-                        if (n.dot(d) > 0) n = -n;  // shade the side facing the camera
-                        const Vec3d albedo = cloud.has_colors() ? Vec3d(hit.color[0], hit.color[1], hit.color[2]) : opt.albedo;
-                        Vec3d c = opt.ambient * albedo;
-                        for (const Light& L : lights) {
-                            Vec3d ldir;
-                            double ldist = std::numeric_limits<float>::infinity();
-                            if (L.kind == Light::Kind::kDirectional) ldir = -L.vector.normalized();
-                            else {
-                                ldir = L.vector - hit.position;
-                                ldist = ldir.norm();
-                                ldir /= ldist;
-                            }
-                            const double ndl = n.dot(ldir);
-                            if (ndl <= 0) continue;
-                            if (opt.shadows) {
-                                // Start half an h off the surface so the ray does not find its own origin.
-                                const Vec3d so = hit.position + 0.5 * h * n;
-                                RayContext sctx;
-                                rtcInitIntersectContext(&sctx.embree);
-                                bool blocked = false;
-                                // Section 5: balls the ray passes near the centre first (gamma priority),
-                                // then the rest; each ball is tried in one pass only.
-                                for (const auto& [gmin, gmax] : {std::pair{0.5, 2.0}, std::pair{-1.0, 0.5}}) {
-                                    sctx.gamma_min = gmin;
-                                    sctx.gamma_max = gmax;
-                                    RTCRayHit sr = MakeRay(so, ldir, 0.0, ldist - 0.5 * h);
-                                    rtcOccluded1(scene.scene(), &sctx.embree, &sr.ray);
-                                    ++local.shadow_rays;
-                                    if (sr.ray.tfar < 0) {
-                                        blocked = true;
-                                        break;
-                                    }
-                                }
-                                local.surface.Add(sctx.counters);
-                                if (blocked) continue;
-                            }
-                            const Vec3d hv = (ldir - d).normalized();
-                            const Vec3d lc = L.color * L.intensity;
-                            c += lc.cwiseProduct(albedo) * ndl + lc * (opt.specular * std::pow(std::max(0.0, n.dot(hv)), opt.shininess));
-                        }
-                        rgb += c;
-                    }
-                    rgb /= spp;
-                    img.At(x, y, 0) = float(rgb.x());
-                    img.At(x, y, 1) = float(rgb.y());
-                    img.At(x, y, 2) = float(rgb.z());
-                    img.At(x, y, 3) = float(coverage / spp);
-                    img.At(x, y, 4) = std::isinf(zmin) ? std::numeric_limits<float>::infinity() : float(zmin);
-                    img.At(x, y, 5) = float(nearest_n.x());
-                    img.At(x, y, 6) = float(nearest_n.y());
-                    img.At(x, y, 7) = float(nearest_n.z());
-                }
+            RenderTile(integrator, tile, tiles_x, &img, &local);
             tracker.Advance(1.0);
         }
         std::lock_guard lock(stats_mutex);
@@ -313,7 +468,7 @@ RenderResult Render(const PointCloud& cloud, const RenderOptions& opt, const Pro
     });
     st.time_ms = watch.ElapsedMs();
     st.setup_ms = setup_ms;
-    st.h = h;
+    st.h = integrator.h;
     st.precision = surface.precision();
     return result;
 }

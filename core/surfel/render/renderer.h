@@ -4,6 +4,7 @@
 /// a ball per point (radius enclosing its 6 nearest neighbours) as user geometry, the
 /// section-4 iteration inside each ball, Lambert + Blinn-Phong shading with hard shadows.
 
+#include <functional>
 #include <optional>
 #include <vector>
 
@@ -13,6 +14,15 @@
 #include "surfel/surface/aa_surface.h"
 
 namespace surfel {
+
+/// Limits of RenderOptions, checked by RenderOptions::Validate() (the worker and the CLI read them
+/// from here).
+inline constexpr int kMaxImageSide = 16384;        ///< Pixels per side (Camera::width, height).
+inline constexpr int kMaxSamplesPerPixel = 1024;   ///< RenderOptions::samples_per_pixel.
+inline constexpr int kMaxLights = 64;              ///< RenderOptions::lights.size().
+inline constexpr double kMinFovyDeg = 1.0;         ///< Camera::fovy_deg, degrees.
+inline constexpr double kMaxFovyDeg = 179.0;       ///< Camera::fovy_deg, degrees.
+inline constexpr double kMaxLightIntensity = 1e6;  ///< Light::intensity (0 is allowed: a light that is off).
 
 /// Pinhole camera. The ray of pixel (i, j) passes through its centre (i + 0.5, j + 0.5); row 0 is
 /// the top of the image.
@@ -47,6 +57,15 @@ struct Light {
     double intensity = 1.0;
 };
 
+/// The render's seam for a CSG render (the boolean issue): called with every converged hit of
+/// every ray, primary and shadow, before the ray accepts it; returning false rejects the hit, and
+/// the ray goes on through the scene as if that part of the surface were absent (a later ball on
+/// the ray can still give a hit). For A - B, a CSG render would keep a hit on A only where B's
+/// AaSurface::Evaluate(hit.position).f < 0 (outside B). Called concurrently from the render's
+/// threads, from inside Embree's callbacks: what it throws is caught there and rethrown by
+/// Render() to its caller (the first exception of the ray; the render stops).
+using HitFilter = std::function<bool(const AaHit& hit)>;
+
 struct RenderOptions {
     Camera camera;
     std::vector<Light> lights;            ///< Empty = one directional light over the camera's left shoulder.
@@ -57,6 +76,26 @@ struct RenderOptions {
     double ambient = 0.1, specular = 0.25, shininess = 32.0;
     AaOptions surface;                    ///< h, precision, degree, iterations.
     int tile = 16;                        ///< Tile size for parallel rendering.
+    HitFilter hit_filter;                 ///< Empty = accept every hit (see HitFilter).
+
+    /// Throws Error(kInvalidArgument, "<field>: <what>") for the first bad field. The fields are
+    /// named as in the render job spec (proto RenderJob), which the worker prefixes with "render.":
+    /// - "width", "height" (camera.width, camera.height): 1..kMaxImageSide, e.g.
+    ///   "width: must lie in 1..16384, got 0";
+    /// - "camera.fovy_deg": kMinFovyDeg..kMaxFovyDeg;
+    /// - "camera.eye", "camera.target", "camera.up": "must be finite"; "camera: eye and target must
+    ///   differ"; "camera.up: must be non-zero and not parallel to the view direction";
+    /// - "samples_per_pixel": 1..kMaxSamplesPerPixel;
+    /// - "lights: at most 64 lights" (kMaxLights); per light i, "lights[i].vector: must be finite",
+    ///   "lights[i].vector: a directional light needs a non-zero direction",
+    ///   "lights[i].color: must be finite", "lights[i].intensity": 0..kMaxLightIntensity;
+    /// - "background: must be finite";
+    /// - not in the job spec: "albedo: must be finite", "ambient", "specular", "shininess"
+    ///   (finite, >= 0);
+    /// - surface: AaOptions::Validate() ("h", "precision", "degree", "max_iterations", ...);
+    /// - "tile": 1..kMaxImageSide.
+    /// Range messages are CheckRange's (surfel/base/validate.h). Default-constructed options are valid.
+    void Validate() const;
 };
 
 /// What a render did (the paper's section 6 figures).
@@ -77,8 +116,9 @@ struct RenderResult {
 };
 
 /// Renders `cloud` (kept by reference during the call). Parallel over tiles; the image does not
-/// depend on the thread count. The progress hook is called per tile; returning false throws
-/// Error(kCancelled).
+/// depend on the thread count. Calls options.Validate() first. The progress hook is called per
+/// tile; returning false throws Error(kCancelled). An exception raised while tracing (in the
+/// surface or the hit filter, inside Embree's callbacks) reaches the caller unchanged.
 RenderResult Render(const PointCloud& cloud, const RenderOptions& options, const ProgressFn& progress = {});
 
 }  // namespace surfel

@@ -5,6 +5,7 @@
 #include <vector>
 
 #include "surfel/base/error.h"
+#include "surfel/base/validate.h"
 #include "surfel/spatial/uniform_grid.h"
 #include "surfel/surface/local_analysis.h"
 
@@ -75,15 +76,21 @@ int IntersectPoly(const LocalFrame& f, const PolyCoeffs& g, const Vec3d& o, cons
 }
 }  // namespace
 
+void AaOptions::Validate() const {
+    CheckAtLeast("h", h, 0.0);
+    CheckAtLeast("precision", precision, 0.0);
+    CheckRange("degree", degree, 0, 2);
+    CheckRange("max_iterations", max_iterations, 1, kMaxSurfaceIterations);
+    CheckAtLeast("cutoff", cutoff, 1.0);
+    CheckRange("normal_ratio", normal_ratio, 0, 1);
+    CheckRange("ball_k", ball_k, 1, kMaxBallNeighbors);
+}
+
 AaSurface::AaSurface(const PointCloud& cloud, const AaOptions& options)
     : impl_(std::make_unique<Impl>(cloud, options)) {
     AaOptions& o = impl_->opt;
     if (cloud.size() < 3) throw Error(ErrorCode::kInvalidArgument, "the surface needs at least 3 points, got " + std::to_string(cloud.size()));
-    if (o.degree < 0 || o.degree > 2) throw Error(ErrorCode::kInvalidArgument, "polynomial degree must be 0, 1 or 2, got " + std::to_string(o.degree));
-    if (o.h < 0 || !std::isfinite(o.h)) throw Error(ErrorCode::kInvalidArgument, "h must be > 0 (or 0 for the default), got " + std::to_string(o.h));
-    if (o.precision < 0 || !std::isfinite(o.precision)) throw Error(ErrorCode::kInvalidArgument, "precision must be > 0 (or 0 for 1e-3 h)");
-    if (o.max_iterations < 1) throw Error(ErrorCode::kInvalidArgument, "max_iterations must be >= 1");
-    if (!(o.cutoff >= 1.0f)) throw Error(ErrorCode::kInvalidArgument, "cutoff must be >= 1 (in units of h)");
+    o.Validate();
     const SamplingDensity density = ComputeSamplingDensity(cloud.positions, o.ball_k);
     impl_->ball_radius = density.radius;
     if (o.h == 0) o.h = DefaultScale(density);

@@ -16,6 +16,11 @@
 
 namespace surfel {
 
+/// Most section-4 iterations per ball (AaOptions::max_iterations); the paper's figures need < 10.
+inline constexpr int kMaxSurfaceIterations = 1000;
+/// Most neighbours a ball radius may enclose (AaOptions::ball_k; the neighbour search's limit).
+inline constexpr int kMaxBallNeighbors = 64;
+
 struct AaOptions {
     float h = 0.0f;             ///< Gaussian scale; 0 = DefaultScale (2 x median spacing).
     int degree = 2;             ///< Local polynomial degree (0 = the paper's analysis, 1, 2).
@@ -24,6 +29,13 @@ struct AaOptions {
     int max_iterations = 20;    ///< Iterations per ball before giving up.
     float normal_ratio = 0.5f;  ///< Normal well-defined when lambda0 < normal_ratio * lambda1 (Definition 1).
     int ball_k = 6;             ///< Ball radius rho_i encloses the ball_k nearest neighbours (section 5).
+
+    /// Throws Error(kInvalidArgument, "<field>: <what>") for the first bad field, named as in the
+    /// render job spec: "h" (finite, >= 0; 0 = auto), "precision" (finite, >= 0; 0 = auto),
+    /// "degree" (0..2), "max_iterations" (1..kMaxSurfaceIterations), and, not in the job spec,
+    /// "cutoff" (finite, >= 1), "normal_ratio" (0..1), "ball_k" (1..kMaxBallNeighbors).
+    /// Example: "degree: must lie in 0..2, got 3". The default-constructed options are valid.
+    void Validate() const;
 };
 
 /// Section 3 at one location: a(x) (eq. 1), n(x) (Definition 1) and f(x) = n(x).(a(x) - x) (eq. 5).
@@ -63,6 +75,8 @@ struct AaCounters {
 /// every method is const; the per-ball centre polynomials are cached lazily without locks.
 class AaSurface {
 public:
+    /// Throws Error(kInvalidArgument) when `options` fail AaOptions::Validate(), the cloud has
+    /// fewer than 3 points, or h = 0 cannot be derived (all points coincide).
     explicit AaSurface(const PointCloud& cloud, const AaOptions& options = {});
     ~AaSurface();
 

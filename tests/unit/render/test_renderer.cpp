@@ -2,7 +2,11 @@
 
 #include <tbb/global_control.h>
 
+#include <atomic>
 #include <filesystem>
+#include <functional>
+#include <limits>
+#include <vector>
 
 #include "surfel/base/error.h"
 #include "surfel/base/shapes.h"
@@ -208,14 +212,208 @@ TEST(Render, SameImageWhateverTheThreadCount) {
         if (!std::isinf(one.image.pixels[i])) ASSERT_EQ(one.image.pixels[i], many.image.pixels[i]) << i;
 }
 
-TEST(Render, BadOptionsAreInvalidArgument) {
-    const PointCloud cloud = Sphere();
+// ---- Validate(): each bad field -> its exact message ------------------------------------------
+
+struct BadRenderCase {
+    const char* name;
+    std::function<void(RenderOptions&)> spoil;
+    const char* message;
+};
+
+Light Directional(const Vec3d& v) { return {Light::Kind::kDirectional, v, {1, 1, 1}, 1.0}; }
+
+TEST(RenderOptions, EachBadFieldIsNamedInTheMessage) {
+    const double nan = std::numeric_limits<double>::quiet_NaN(), inf = std::numeric_limits<double>::infinity();
+    const std::vector<BadRenderCase> cases = {
+        {"width 0", [](RenderOptions& o) { o.camera.width = 0; }, "width: must lie in 1..16384, got 0"},
+        {"width big", [](RenderOptions& o) { o.camera.width = kMaxImageSide + 1; },
+         "width: must lie in 1..16384, got 16385"},
+        {"height", [](RenderOptions& o) { o.camera.height = -3; }, "height: must lie in 1..16384, got -3"},
+        {"fovy low", [](RenderOptions& o) { o.camera.fovy_deg = 0.5; }, "camera.fovy_deg: must lie in 1..179, got 0.5"},
+        {"fovy high", [](RenderOptions& o) { o.camera.fovy_deg = 180; }, "camera.fovy_deg: must lie in 1..179, got 180"},
+        {"fovy nan", [&](RenderOptions& o) { o.camera.fovy_deg = nan; }, "camera.fovy_deg: must lie in 1..179, got nan"},
+        {"eye", [&](RenderOptions& o) { o.camera.eye.y() = nan; }, "camera.eye: must be finite"},
+        {"target", [&](RenderOptions& o) { o.camera.target.x() = -inf; }, "camera.target: must be finite"},
+        {"up finite", [&](RenderOptions& o) { o.camera.up.z() = inf; }, "camera.up: must be finite"},
+        {"eye = target", [](RenderOptions& o) { o.camera.target = o.camera.eye; }, "camera: eye and target must differ"},
+        {"up zero", [](RenderOptions& o) { o.camera.up = Vec3d::Zero(); },
+         "camera.up: must be non-zero and not parallel to the view direction"},
+        {"up parallel", [](RenderOptions& o) { o.camera.up = 2.0 * (o.camera.eye - o.camera.target); },
+         "camera.up: must be non-zero and not parallel to the view direction"},
+        {"spp 0", [](RenderOptions& o) { o.samples_per_pixel = 0; }, "samples_per_pixel: must lie in 1..1024, got 0"},
+        {"spp big", [](RenderOptions& o) { o.samples_per_pixel = 1025; },
+         "samples_per_pixel: must lie in 1..1024, got 1025"},
+        {"lights count", [](RenderOptions& o) { o.lights.assign(kMaxLights + 1, Light{}); }, "lights: at most 64 lights"},
+        {"light zero direction", [](RenderOptions& o) { o.lights = {Light{}, Directional(Vec3d::Zero())}; },
+         "lights[1].vector: a directional light needs a non-zero direction"},
+        {"light vector", [&](RenderOptions& o) { o.lights = {Directional({0, nan, 1})}; },
+         "lights[0].vector: must be finite"},
+        {"light colour", [&](RenderOptions& o) { o.lights = {Light{}}; o.lights[0].color.x() = inf; },
+         "lights[0].color: must be finite"},
+        {"light intensity low", [](RenderOptions& o) { o.lights = {Light{}}; o.lights[0].intensity = -1; },
+         "lights[0].intensity: must lie in 0..1e+06, got -1"},
+        {"light intensity high", [](RenderOptions& o) { o.lights = {Light{}}; o.lights[0].intensity = 2e6; },
+         "lights[0].intensity: must lie in 0..1e+06, got 2e+06"},
+        {"background", [&](RenderOptions& o) { o.background.z() = nan; }, "background: must be finite"},
+        {"albedo", [&](RenderOptions& o) { o.albedo.x() = inf; }, "albedo: must be finite"},
+        {"ambient", [](RenderOptions& o) { o.ambient = -0.1; }, "ambient: must be finite and at least 0, got -0.1"},
+        {"specular", [&](RenderOptions& o) { o.specular = nan; }, "specular: must be finite and at least 0, got nan"},
+        {"shininess", [](RenderOptions& o) { o.shininess = -2; }, "shininess: must be finite and at least 0, got -2"},
+        {"h", [](RenderOptions& o) { o.surface.h = -1; }, "h: must be finite and at least 0, got -1"},
+        {"precision", [](RenderOptions& o) { o.surface.precision = std::numeric_limits<float>::infinity(); },
+         "precision: must be finite and at least 0, got inf"},
+        {"degree", [](RenderOptions& o) { o.surface.degree = 3; }, "degree: must lie in 0..2, got 3"},
+        {"max_iterations 0", [](RenderOptions& o) { o.surface.max_iterations = 0; },
+         "max_iterations: must lie in 1..1000, got 0"},
+        {"max_iterations big", [](RenderOptions& o) { o.surface.max_iterations = kMaxSurfaceIterations + 1; },
+         "max_iterations: must lie in 1..1000, got 1001"},
+        {"tile", [](RenderOptions& o) { o.tile = 0; }, "tile: must lie in 1..16384, got 0"},
+    };
+    for (const BadRenderCase& c : cases) {
+        RenderOptions opt;
+        c.spoil(opt);
+        try {
+            opt.Validate();
+            ADD_FAILURE() << c.name << ": accepted";
+        } catch (const Error& e) {
+            EXPECT_EQ(e.code(), ErrorCode::kInvalidArgument) << c.name;
+            EXPECT_STREQ(e.what(), c.message) << c.name;
+        }
+    }
+}
+
+TEST(RenderOptions, DefaultsAndLimitsAreValid) {
+    EXPECT_NO_THROW(RenderOptions{}.Validate());
+    RenderOptions opt;  // every limit itself is allowed
+    opt.camera.width = opt.camera.height = kMaxImageSide;
+    opt.camera.fovy_deg = kMaxFovyDeg;
+    opt.samples_per_pixel = kMaxSamplesPerPixel;
+    opt.lights.assign(kMaxLights, Light{});
+    opt.lights[0] = {Light::Kind::kPoint, Vec3d::Zero(), {1, 1, 1}, kMaxLightIntensity};  // a point light may sit at 0
+    opt.lights[1].intensity = 0;
+    opt.surface.max_iterations = kMaxSurfaceIterations;
+    EXPECT_NO_THROW(opt.Validate());
+    opt.camera.fovy_deg = kMinFovyDeg;
+    EXPECT_NO_THROW(opt.Validate());
+}
+
+TEST(Render, ValidatesTheOptionsFirst) {
+    // An empty cloud would fail in the surface; the options are checked before it is built.
     RenderOptions opt;
     opt.camera.width = 0;
-    EXPECT_THROW(Render(cloud, opt), Error);
-    opt.camera.width = 8;
-    opt.camera.eye = opt.camera.target;
-    EXPECT_THROW(Render(cloud, opt), Error);
+    try {
+        Render(PointCloud{}, opt);
+        ADD_FAILURE() << "accepted";
+    } catch (const Error& e) {
+        EXPECT_EQ(e.code(), ErrorCode::kInvalidArgument);
+        EXPECT_STREQ(e.what(), "width: must lie in 1..16384, got 0");
+    }
+}
+
+// ---- Exceptions inside Embree's callbacks and the hit-filter seam ----------------------------
+
+// Render(), expecting the Error that the hit filter throws from inside the callbacks.
+void ExpectFilterErrorReachesTheCaller(const PointCloud& cloud, RenderOptions opt) {
+    std::atomic<int> calls{0};
+    opt.hit_filter = [&](const AaHit&) -> bool {
+        ++calls;
+        throw Error(ErrorCode::kResourceExhausted, "other surface: out of budget");
+    };
+    try {
+        Render(cloud, opt);
+        ADD_FAILURE() << "the render did not throw";
+    } catch (const Error& e) {
+        EXPECT_EQ(e.code(), ErrorCode::kResourceExhausted);
+        EXPECT_STREQ(e.what(), "other surface: out of budget");
+    }
+    EXPECT_GT(calls.load(), 0);
+}
+
+TEST(Render, ErrorInsideTheIntersectCallbackReachesTheCaller) {
+    RenderOptions opt;
+    opt.camera.width = opt.camera.height = 16;
+    opt.shadows = false;
+    ExpectFilterErrorReachesTheCaller(Sphere(), opt);
+}
+
+TEST(Render, ErrorInsideTheOccludedCallbackReachesTheCaller) {
+    // The camera sits between the sphere and the wall behind it and sees only the wall; only the
+    // shadow rays from the wall meet the sphere, in the occluded callback.
+    PointCloud scene = Sphere();
+    ShapeOptions o;
+    o.points = 20000;
+    o.normals = true;
+    o.scale = 2;
+    PointCloud wall = SampleShape(Shape::kPlane, o);
+    for (auto& p : wall.positions) p.z() = -2.5f;
+    scene.positions.insert(scene.positions.end(), wall.positions.begin(), wall.positions.end());
+    scene.normals.insert(scene.normals.end(), wall.normals.begin(), wall.normals.end());
+    RenderOptions opt;
+    opt.camera.eye = {0, 0, -1.2};
+    opt.camera.target = {0, 0, -2.5};
+    opt.camera.width = opt.camera.height = 12;
+    opt.camera.fovy_deg = 30;
+    opt.lights = {Directional({0, 0, -1})};  // shadow rays from the wall go +z into the sphere
+    // The primary rays' hits on the wall pass; a hit anywhere else throws.
+    std::atomic<int> shadow_calls{0};
+    opt.hit_filter = [&](const AaHit& hit) -> bool {
+        if (std::abs(hit.position.z() + 2.5) < 0.1) return true;
+        ++shadow_calls;
+        throw Error(ErrorCode::kResourceExhausted, "other surface: out of budget");
+    };
+    try {
+        Render(scene, opt);
+        ADD_FAILURE() << "the render did not throw";
+    } catch (const Error& e) {
+        EXPECT_EQ(e.code(), ErrorCode::kResourceExhausted);
+        EXPECT_STREQ(e.what(), "other surface: out of budget");
+    }
+    EXPECT_GT(shadow_calls.load(), 0);
+    // Without shadows no ray meets the sphere: the same filter lets the render through.
+    opt.shadows = false;
+    shadow_calls = 0;
+    const RenderResult r = Render(scene, opt);
+    EXPECT_EQ(shadow_calls.load(), 0);
+    EXPECT_EQ(r.stats.hits, 144u);
+}
+
+TEST(Render, HitFilterRejectsTheNearSheet) {
+    // The seam a CSG render plugs into: reject every hit on the camera's half (z > 0) of the unit
+    // sphere, and the rays go on to the far side, at the analytic far root.
+    const PointCloud cloud = Sphere();
+    RenderOptions opt;
+    opt.camera.eye = {0, 0, 4};
+    opt.camera.width = opt.camera.height = 48;
+    opt.shadows = false;
+    opt.hit_filter = [](const AaHit& hit) { return hit.position.z() <= 0; };
+    const RenderResult r = Render(cloud, opt);
+    const double pixel_angle = 40.0 / 48 * M_PI / 180;
+    int checked = 0, misses = 0;
+    double worst_depth = 0;
+    for (int y = 0; y < 48; ++y)
+        for (int x = 0; x < 48; ++x) {
+            const Vec3d d = opt.camera.Direction(x + 0.5, y + 0.5);
+            const double b = opt.camera.eye.dot(d), disc = b * b - (opt.camera.eye.squaredNorm() - 1.0);
+            const double closest = (opt.camera.eye - b * d).norm();
+            const double silhouette_px = std::abs(std::asin(std::min(1.0, closest / 4.0)) - std::asin(0.25)) / pixel_angle;
+            if (silhouette_px <= 1.0) continue;
+            if (disc < 0) {
+                EXPECT_EQ(r.image.At(x, y, 3), 0.0f) << x << "," << y;
+                continue;
+            }
+            const double t_far = -b + std::sqrt(disc);
+            if ((opt.camera.eye + t_far * d).z() > -0.1) continue;  // near the filter's edge
+            ++checked;
+            if (r.image.At(x, y, 3) < 0.5f) {
+                ++misses;
+                continue;
+            }
+            worst_depth = std::max(worst_depth, std::abs(r.image.At(x, y, 4) - t_far));
+            EXPECT_LT(r.image.At(x, y, 7), 0.0f) << x << "," << y;  // the far side's normal faces -z
+        }
+    EXPECT_GT(checked, 700);
+    EXPECT_EQ(misses, 0);
+    EXPECT_LT(worst_depth, 1e-3);
 }
 
 }  // namespace

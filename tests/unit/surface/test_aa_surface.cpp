@@ -1,5 +1,10 @@
 #include <gtest/gtest.h>
 
+#include <limits>
+#include <string>
+#include <utility>
+#include <vector>
+
 #include "surfel/base/error.h"
 #include "surfel/base/shapes.h"
 #include "surfel/surface/aa_surface.h"
@@ -81,7 +86,49 @@ TEST(AaSurface, RayMissesFarFromThePoints) {
     // Parallel to the plane, above it: no intersection in any ball.
     for (std::uint32_t b = 0; b < 50; ++b)
         EXPECT_FALSE(s.IntersectInBall(b, Vec3d(-2, 0, 0.5), Vec3d(1, 0, 0), 0, 1e30, &counters));
-    EXPECT_THROW(AaSurface(c, AaOptions{.degree = 3}), Error);
+    // The options are validated by the constructor (AaOptions::Validate).
+    try {
+        AaSurface bad(c, AaOptions{.degree = 3});
+        ADD_FAILURE() << "accepted degree 3";
+    } catch (const Error& e) {
+        EXPECT_STREQ(e.what(), "degree: must lie in 0..2, got 3");
+    }
+}
+
+TEST(AaOptions, EachBadFieldIsNamedInTheMessage) {
+    const float nan = std::numeric_limits<float>::quiet_NaN(), inf = std::numeric_limits<float>::infinity();
+    const std::vector<std::pair<AaOptions, std::string>> cases = {
+        {AaOptions{.h = -0.5f}, "h: must be finite and at least 0, got -0.5"},
+        {AaOptions{.h = inf}, "h: must be finite and at least 0, got inf"},
+        {AaOptions{.precision = nan}, "precision: must be finite and at least 0, got nan"},
+        {AaOptions{.precision = -1e-3f}, "precision: must be finite and at least 0, got -0.001"},
+        {AaOptions{.degree = -1}, "degree: must lie in 0..2, got -1"},
+        {AaOptions{.degree = 3}, "degree: must lie in 0..2, got 3"},
+        {AaOptions{.max_iterations = 0}, "max_iterations: must lie in 1..1000, got 0"},
+        {AaOptions{.max_iterations = kMaxSurfaceIterations + 1}, "max_iterations: must lie in 1..1000, got 1001"},
+        {AaOptions{.cutoff = 0.5f}, "cutoff: must be finite and at least 1, got 0.5"},
+        {AaOptions{.normal_ratio = 1.5f}, "normal_ratio: must lie in 0..1, got 1.5"},
+        {AaOptions{.ball_k = 0}, "ball_k: must lie in 1..64, got 0"},
+        {AaOptions{.ball_k = kMaxBallNeighbors + 1}, "ball_k: must lie in 1..64, got 65"},
+    };
+    for (const auto& [options, message] : cases) {
+        try {
+            options.Validate();
+            ADD_FAILURE() << message << ": accepted";
+        } catch (const Error& e) {
+            EXPECT_EQ(e.code(), ErrorCode::kInvalidArgument) << message;
+            EXPECT_EQ(e.what(), message);
+        }
+    }
+}
+
+TEST(AaOptions, DefaultsAndLimitsAreValid) {
+    EXPECT_NO_THROW(AaOptions{}.Validate());
+    // 0 = derive h and precision; the iteration limit itself; the three degrees.
+    for (int degree = 0; degree <= 2; ++degree)
+        EXPECT_NO_THROW((AaOptions{.h = 0, .degree = degree, .precision = 0, .max_iterations = kMaxSurfaceIterations})
+                            .Validate());
+    EXPECT_NO_THROW((AaOptions{.max_iterations = 1, .ball_k = kMaxBallNeighbors}).Validate());
 }
 
 }  // namespace
