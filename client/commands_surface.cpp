@@ -9,6 +9,9 @@
 namespace surfel::cli {
 namespace {
 
+// Defaults come from the default-constructed Options each Args holds, ranges from core's named
+// limits (local_analysis.h, mls.h); core's Validate() checks again.
+
 struct NormalsArgs {
     std::string input, output;
     NormalOptions opt;
@@ -94,9 +97,18 @@ void RegisterSurfaceCommands(CLI::App& app) {
         auto* sub = app.add_subcommand("normals", "Estimate normals by covariance analysis and orient them consistently (MST)");
         sub->add_option("input", a->input, "PLY or XYZ file")->required()->check(CLI::ExistingFile);
         sub->add_option("-o,--output", a->output, "Output file with normals (.ply or .xyz)")->required();
-        sub->add_option("-k,--k", a->opt.k, "Neighbours per point for the covariance")->default_val(16)->check(CLI::Range(3, 1000));
+        sub->add_option("-k,--k", a->opt.k, "Neighbours per point for the covariance")
+            ->capture_default_str()
+            ->check(CLI::Range(kMinNormalNeighbors, kMaxNormalNeighbors));
         sub->add_flag("--weighted", a->opt.weighted, "Gaussian-weighted covariance instead of plain PCA");
-        sub->add_option("--orient-k", a->opt.orient_k, "Neighbours in the orientation graph")->default_val(10)->check(CLI::Range(1, 1000));
+        sub->add_option("--orient-k", a->opt.orient_k, "Neighbours in the orientation graph")
+            ->capture_default_str()
+            ->check(CLI::Range(kMinOrientNeighbors, kMaxOrientNeighbors));
+        sub->add_option("--orient-crossing-weight", a->opt.orient_crossing_weight,
+                        "Weight of an edge's tilt out of the tangent planes in the orientation's MST cost "
+                        "(0 = Hoppe's 1 - |ni.nj| alone)")
+            ->capture_default_str()
+            ->check(CLI::Range(0.0, kMaxOrientCrossingWeight));
         sub->add_flag("--no-orient", a->no_orient, "Leave the normals' signs as estimated");
         sub->add_flag("--ascii", a->ascii, "Write ASCII PLY");
         AddCommonFlags(sub, &a->flags);
@@ -108,10 +120,16 @@ void RegisterSurfaceCommands(CLI::App& app) {
         auto* sub = app.add_subcommand("project", "MLS-project every point onto the cloud's MLS surface (smoothing)");
         sub->add_option("input", a->input, "PLY or XYZ file")->required()->check(CLI::ExistingFile);
         sub->add_option("-o,--output", a->output, "Output file (.ply or .xyz)")->required();
-        sub->add_option("--h", a->opt.h, "Gaussian scale h (0 = 2 x median sample spacing)")->default_val(0.0f)->check(CLI::NonNegativeNumber);
-        sub->add_option("--degree", a->opt.degree, "Polynomial degree over the reference plane")->default_val(2)->check(CLI::Range(0, 2));
+        sub->add_option("--h", a->opt.h, "Gaussian scale h (0 = 2 x median sample spacing)")
+            ->capture_default_str()
+            ->check(CLI::NonNegativeNumber);
+        sub->add_option("--degree", a->opt.degree, "Polynomial degree over the reference plane")
+            ->capture_default_str()
+            ->check(CLI::Range(kMinMlsDegree, kMaxMlsDegree));
         sub->add_flag("--adaptive", a->opt.adaptive, "Adaptive MLS: h follows the local sample spacing");
-        sub->add_option("--cutoff", a->opt.cutoff, "Neighbour radius in units of h")->default_val(3.0f)->check(CLI::Range(1.0f, 10.0f));
+        sub->add_option("--cutoff", a->opt.cutoff, "Neighbour radius in units of h")
+            ->capture_default_str()
+            ->check(CLI::Range(kMinMlsCutoff, kMaxMlsCutoff));
         sub->add_flag("--ascii", a->ascii, "Write ASCII PLY");
         AddCommonFlags(sub, &a->flags);
         sub->footer("Point order is kept; normals are the MLS surface's. Example:\n  surfel project noisy.ply -o smooth.ply --degree 2 --json");
@@ -122,10 +140,13 @@ void RegisterSurfaceCommands(CLI::App& app) {
         auto* sub = app.add_subcommand("error", "Surface error (max and average, Metro-style via MLS) of OTHER against REFERENCE");
         sub->add_option("reference", a->reference, "Cloud sampling the surface S")->required()->check(CLI::ExistingFile);
         sub->add_option("other", a->other, "Cloud sampling the surface S'")->required()->check(CLI::ExistingFile);
-        sub->add_option("--samples", a->opt.max_samples, "Measure at most this many points of REFERENCE (0 = all)")->default_val(0);
+        sub->add_option("--samples", a->opt.max_samples, "Measure at most this many points of REFERENCE (0 = all)")
+            ->capture_default_str();
         sub->add_flag("--symmetric", a->opt.symmetric, "Measure both directions");
-        sub->add_option("--degree", a->opt.degree, "MLS degree of the projection onto OTHER (the notes use 1)")->default_val(2)->check(CLI::Range(0, 2));
-        sub->add_option("--seed", a->opt.seed, "Seed for the sample subset")->default_val(1);
+        sub->add_option("--degree", a->opt.degree, "MLS degree of the projection onto OTHER (the notes use 1)")
+            ->capture_default_str()
+            ->check(CLI::Range(kMinMlsDegree, kMaxMlsDegree));
+        sub->add_option("--seed", a->opt.seed, "Seed for the sample subset")->capture_default_str();
         AddCommonFlags(sub, &a->flags);
         sub->footer(
             "Each sample of REFERENCE is projected onto its own MLS surface S, giving q; d is the distance\n"

@@ -5,13 +5,15 @@
 
 #include <Eigen/Eigenvalues>
 #include <algorithm>
+#include <array>
 #include <cmath>
-#include <numbers>
 #include <limits>
+#include <numbers>
 #include <numeric>
 #include <queue>
 
 #include "surfel/base/error.h"
+#include "surfel/base/validate.h"
 #include "surfel/spatial/neighbor_radii.h"
 #include "surfel/surface/poly_fit.h"
 
@@ -114,11 +116,18 @@ CovarianceFrame AnalyzeNeighborhood(std::span<const Vec3f> points, std::span<con
 
 namespace {
 std::size_t OrientOverGraph(std::span<const Vec3f> pts, std::vector<Vec3f>& normals, const KnnTable& knn, int kk,
-                            std::size_t* flipped, const ProgressFn& progress);
+                            float crossing_weight, std::size_t* flipped, const ProgressFn& progress);
 }  // namespace
 
+void NormalOptions::Validate() const {
+    CheckRange("k", k, kMinNormalNeighbors, kMaxNormalNeighbors);
+    CheckAtLeast("h", h, 0.0);
+    CheckRange("orient_k", orient_k, kMinOrientNeighbors, kMaxOrientNeighbors);
+    CheckRange("orient_crossing_weight", orient_crossing_weight, 0.0, kMaxOrientCrossingWeight);
+}
+
 NormalResult EstimateNormals(const KdTree& tree, const NormalOptions& opt, const ProgressFn& progress) {
-    if (opt.k < 3) throw Error(ErrorCode::kInvalidArgument, "normal estimation needs k >= 3, got " + std::to_string(opt.k));
+    opt.Validate();
     const std::size_t n = tree.size();
     NormalResult res;
     if (n < 3) throw Error(ErrorCode::kInvalidArgument, "normal estimation needs at least 3 points, got " + std::to_string(n));
@@ -165,17 +174,59 @@ NormalResult EstimateNormals(const KdTree& tree, const NormalOptions& opt, const
         const ProgressFn hook = progress ? ProgressFn([&](double f) { return progress(0.7 + 0.3 * f); }) : ProgressFn{};
         const int kk = std::max(1, std::min<int>(opt.orient_k, static_cast<int>(n) - 1));
         // The orientation graph's neighbours are the first orient_k of the k already found.
-        res.components = kk <= k ? OrientOverGraph(pts, res.normals, knn, kk, &res.flipped, hook)
-                                 : OrientNormals(tree, res.normals, opt.orient_k, &res.flipped, hook);
+        res.components = kk <= k ? OrientOverGraph(pts, res.normals, knn, kk, opt.orient_crossing_weight, &res.flipped, hook)
+                                 : OrientNormals(tree, res.normals, opt, &res.flipped, hook);
     }
     return res;
 }
 
 namespace {
 
+// The seed vote (OutwardVote): points per direction, and the mean vote per direction below which
+// the component counts as flat.
+constexpr std::size_t kSeedVotePoints = 8;
+constexpr double kSeedVoteTie = 0.05;
+
+// The directions the seed vote looks along: the 26 of the cube's faces, edges and corners.
+std::array<Vec3d, 26> VoteDirections() {
+    std::array<Vec3d, 26> dirs;
+    std::size_t m = 0;
+    for (int x = -1; x <= 1; ++x)
+        for (int y = -1; y <= 1; ++y)
+            for (int z = -1; z <= 1; ++z)
+                if (x != 0 || y != 0 || z != 0) dirs[m++] = Vec3d(x, y, z).normalized();
+    return dirs;
+}
+
+// Outward vote of one consistently oriented component (the seed rule of OrientNormals): > 0
+// keeps its normals, < 0 turns them all over. Where a closed surface is extremal in a direction
+// d, its outward normal is d, so each of the 26 directions votes with the mean of n . d over the
+// component's kSeedVotePoints most extremal points in d. A single extremal point is not safe:
+// the normal at the top of a thin feature (an ear, a fin, a spike of noise) lies nearly in the
+// tangent plane, and its sign is what propagated there through the feature. Many directions and
+// several points per direction outvote such points. A vote weaker than kSeedVoteTie per
+// direction (a flat or nearly flat open sheet, whose votes along d and -d cancel) falls back to
+// CGAL's rule (mst_orient_normals): the normal at the point of largest z points up.
+double OutwardVote(std::span<const Vec3f> pts, std::span<const Vec3f> normals, std::span<const std::uint32_t> comp,
+                   std::uint32_t top) {
+    static const std::array<Vec3d, 26> kDirections = VoteDirections();
+    const std::size_t m = std::min<std::size_t>(kSeedVotePoints, comp.size());
+    std::vector<std::pair<double, std::uint32_t>> height(comp.size());
+    double vote = 0;
+    for (const Vec3d& d : kDirections) {
+        for (std::size_t j = 0; j < comp.size(); ++j) height[j] = {-pts[comp[j]].cast<double>().dot(d), comp[j]};
+        std::partial_sort(height.begin(), height.begin() + static_cast<std::ptrdiff_t>(m), height.end());
+        double sum = 0;
+        for (std::size_t j = 0; j < m; ++j) sum += normals[height[j].second].cast<double>().dot(d);
+        vote += sum / static_cast<double>(m);
+    }
+    if (std::abs(vote) >= kSeedVoteTie * static_cast<double>(kDirections.size())) return vote;
+    return normals[top].z();
+}
+
 // Orientation over the graph of the first kk columns of `knn` (rows sorted by distance).
 std::size_t OrientOverGraph(std::span<const Vec3f> pts, std::vector<Vec3f>& normals, const KnnTable& knn, int kk,
-                            std::size_t* flipped, const ProgressFn& progress) {
+                            float crossing_weight, std::size_t* flipped, const ProgressFn& progress) {
     const std::size_t n = pts.size();
     if (flipped) *flipped = 0;
     if (n == 0) return 0;
@@ -213,9 +264,8 @@ std::size_t OrientOverGraph(std::span<const Vec3f> pts, std::vector<Vec3f>& norm
             if (a != b) parent[std::max(a, b)] = std::min(a, b);
         }
     struct Comp {
-        std::uint32_t top = UINT32_MAX;
-        Vec3d sum = Vec3d::Zero();
-        std::size_t count = 0;
+        std::uint32_t top = UINT32_MAX;  // the tree's root: the point of largest z
+        std::uint32_t first = 0, count = 0;  // its points: members[first, first + count)
     };
     std::vector<std::uint32_t> comp_of(n);
     std::vector<std::int64_t> comp_index(n, -1);
@@ -228,12 +278,23 @@ std::size_t OrientOverGraph(std::span<const Vec3f> pts, std::vector<Vec3f>& norm
         }
         Comp& c = comps[comp_index[r]];
         comp_of[i] = static_cast<std::uint32_t>(comp_index[r]);
-        c.sum += pts[i].cast<double>();
         ++c.count;
         if (c.top == UINT32_MAX || pts[i].z() > pts[c.top].z()) c.top = static_cast<std::uint32_t>(i);
     }
+    // The points of each component, in index order (a counting sort by component).
+    std::vector<std::uint32_t> members(n);
+    {
+        std::uint32_t offset = 0;
+        for (Comp& c : comps) {
+            c.first = offset;
+            offset += c.count;
+        }
+        std::vector<std::uint32_t> next(comps.size());
+        for (std::size_t c = 0; c < comps.size(); ++c) next[c] = comps[c].first;
+        for (std::size_t i = 0; i < n; ++i) members[next[comp_of[i]]++] = static_cast<std::uint32_t>(i);
+    }
 
-    // Prim's algorithm from each root, cost 1 - |ni . nj|; ties broken by index (deterministic).
+    // Prim's algorithm from each root, cost 1 - |ni . nj| + w tilt; ties broken by index (deterministic).
     struct Edge {
         float cost;
         std::uint32_t to, from;
@@ -253,7 +314,13 @@ std::size_t OrientOverGraph(std::span<const Vec3f> pts, std::vector<Vec3f>& norm
         for (std::uint32_t e = start[u]; e < start[u + 1]; ++e) {
             const std::uint32_t v = adj[e];
             if (visited[v]) continue;
-            const float cost = 1.0f - std::abs(normals[u].dot(normals[v]));
+            // Hoppe's 1 - |ni . nj| plus the edge's tilt out of the two tangent planes: an edge
+            // across a thin part joins antiparallel normals, which the plain cost finds cheapest.
+            const Vec3f edge = pts[v] - pts[u];
+            const float len = edge.norm();
+            const float tilt =
+                len > 0 ? 0.5f * (std::abs(edge.dot(normals[u])) + std::abs(edge.dot(normals[v]))) / len : 0.0f;
+            const float cost = 1.0f - std::abs(normals[u].dot(normals[v])) + crossing_weight * tilt;
             if (cost < best[v] || (cost == best[v] && u < best_from[v])) {
                 best[v] = cost;
                 best_from[v] = u;
@@ -261,15 +328,12 @@ std::size_t OrientOverGraph(std::span<const Vec3f> pts, std::vector<Vec3f>& norm
             }
         }
     };
+    std::vector<std::uint8_t> negated(n, 0);  // whether normal i ends opposite to its estimate
     for (const Comp& c : comps) {
-        const Vec3d centroid = c.sum / static_cast<double>(c.count);
+        // Propagation along the tree from the root, taking the root's sign as estimated; the
+        // component's sign is settled afterwards by the vote (the tree does not depend on signs,
+        // so this equals seeding the root with the sign the vote picks).
         const std::uint32_t root = c.top;
-        Vec3d away = pts[root].cast<double>() - centroid;
-        if (away.squaredNorm() == 0.0) away = Vec3d::UnitZ();
-        if (normals[root].cast<double>().dot(away) < 0) {
-            normals[root] = -normals[root];
-            ++flips;
-        }
         visited[root] = 1;
         push_edges(root);
         while (!heap.empty()) {
@@ -279,25 +343,33 @@ std::size_t OrientOverGraph(std::span<const Vec3f> pts, std::vector<Vec3f>& norm
             visited[e.to] = 1;
             if (normals[e.from].dot(normals[e.to]) < 0) {
                 normals[e.to] = -normals[e.to];
-                ++flips;
+                negated[e.to] ^= 1;
             }
             push_edges(e.to);
             if ((++done & 0xFFFF) == 0) tracker.Advance(65536.0);
         }
+        const std::span<const std::uint32_t> comp(members.data() + c.first, c.count);
+        if (OutwardVote(pts, normals, comp, root) < 0)
+            for (std::uint32_t i : comp) {
+                normals[i] = -normals[i];
+                negated[i] ^= 1;
+            }
     }
+    for (std::uint8_t f : negated) flips += f;
     if (flipped) *flipped = flips;
     return comps.size();
 }
 
 }  // namespace
 
-std::size_t OrientNormals(const KdTree& tree, std::vector<Vec3f>& normals, int k, std::size_t* flipped,
-                          const ProgressFn& progress) {
+std::size_t OrientNormals(const KdTree& tree, std::vector<Vec3f>& normals, const NormalOptions& options,
+                          std::size_t* flipped, const ProgressFn& progress) {
+    options.Validate();
     const std::size_t n = tree.size();
     SURFEL_CHECK(normals.size() == n, normals.size() << " normals for " << n << " points");
-    const int kk = std::max(1, std::min<int>(k, static_cast<int>(n) - 1));
+    const int kk = std::max(1, std::min<int>(options.orient_k, static_cast<int>(n) - 1));
     const KnnTable knn = n > 1 ? tree.KnnAll(kk) : KnnTable{};
-    return OrientOverGraph(tree.points(), normals, knn, kk, flipped, progress);
+    return OrientOverGraph(tree.points(), normals, knn, kk, options.orient_crossing_weight, flipped, progress);
 }
 
 std::vector<float> NormalVariation(const KdTree& tree, std::span<const Vec3f> normals, int k) {

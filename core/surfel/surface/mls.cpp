@@ -8,6 +8,7 @@
 #include <cmath>
 
 #include "surfel/base/error.h"
+#include "surfel/base/validate.h"
 #include "surfel/surface/local_analysis.h"
 #include "surfel/surface/poly_fit.h"
 #include "surfel/spatial/uniform_grid.h"
@@ -107,14 +108,19 @@ struct MlsSurface::Impl {
     }
 };
 
+void MlsOptions::Validate() const {
+    CheckAtLeast("h", h, 0.0);
+    CheckRange("degree", degree, kMinMlsDegree, kMaxMlsDegree);
+    CheckRange("cutoff", cutoff, kMinMlsCutoff, kMaxMlsCutoff);
+    CheckRange("max_iterations", max_iterations, kMinMlsIterations, kMaxMlsIterations);
+    CheckRange("tolerance", tolerance, 0.0, kMaxMlsTolerance);
+    CheckRange("min_neighbors", min_neighbors, kMinMlsNeighbors, kMaxMlsNeighbors);
+}
+
 MlsSurface::MlsSurface(const PointCloud& cloud, const KdTree& tree, const MlsOptions& options)
     : impl_(std::make_unique<Impl>(cloud, tree, options)) {
     SURFEL_CHECK(tree.size() == cloud.size(), "tree over " << tree.size() << " points, cloud " << cloud.size());
-    if (options.degree < 0 || options.degree > 2)
-        throw Error(ErrorCode::kInvalidArgument, "MLS polynomial degree must be 0, 1 or 2, got " + std::to_string(options.degree));
-    if (options.h < 0 || !std::isfinite(options.h))
-        throw Error(ErrorCode::kInvalidArgument, "MLS scale h must be > 0 (or 0 for the default), got " + std::to_string(options.h));
-    if (!(options.cutoff >= 1.0f)) throw Error(ErrorCode::kInvalidArgument, "MLS cutoff must be >= 1 (in units of h)");
+    options.Validate();
     if (options.adaptive) impl_->density = ComputeSamplingDensity(tree);
     if (impl_->opt.h == 0)
         impl_->opt.h = options.adaptive ? DefaultScale(impl_->density) : 2.0f * MedianSpacing(tree);

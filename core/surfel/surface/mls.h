@@ -11,14 +11,41 @@
 
 namespace surfel {
 
+/// Limits of MlsOptions, written once here; the CLI and the docs read them.
+/// Range of `degree`, the bivariate polynomial over the reference plane (notes eq. 1.3).
+inline constexpr int kMinMlsDegree = 0;
+inline constexpr int kMaxMlsDegree = 2;
+/// Range of `cutoff`, in units of h: below 1 the Gaussian is cut where it still weighs exp(-1).
+inline constexpr double kMinMlsCutoff = 1.0;
+inline constexpr double kMaxMlsCutoff = 10.0;
+/// Range of `max_iterations`: the reference plane needs at least one.
+inline constexpr int kMinMlsIterations = 1;
+inline constexpr int kMaxMlsIterations = 1000;
+/// Largest `tolerance`, in units of h.
+inline constexpr double kMaxMlsTolerance = 1.0;
+/// Range of `min_neighbors`.
+inline constexpr int kMinMlsNeighbors = 1;
+inline constexpr int kMaxMlsNeighbors = 100000;
+
 struct MlsOptions {
-    float h = 0.0f;           ///< Gaussian scale of theta(d) = exp(-d^2/h^2); 0 = DefaultScale (2 x median spacing).
-    int degree = 2;           ///< Degree of the bivariate polynomial over the reference plane: 0, 1 or 2.
-    float cutoff = 3.0f;      ///< Neighbours within cutoff * h (notes 1.3: weights below 1e-3 beyond 3h... exp(-9)).
+    /// Gaussian scale of theta(d) = exp(-d^2/h^2), model units, >= 0; 0 = DefaultScale (2 x median spacing).
+    float h = 0.0f;
+    /// Degree of the bivariate polynomial over the reference plane, kMinMlsDegree..kMaxMlsDegree.
+    int degree = 2;
+    /// Neighbours within cutoff * h (weights beyond 3h are below exp(-9) = 1.2e-4),
+    /// kMinMlsCutoff..kMaxMlsCutoff.
+    float cutoff = 3.0f;
     bool adaptive = false;    ///< Adaptive MLS (notes 1.3): h(x) = h * eta(x) / median(eta).
-    int max_iterations = 8;   ///< Reference-plane iterations.
-    float tolerance = 1e-3f;  ///< Stop when the plane's foot point moves less than tolerance * h.
-    int min_neighbors = 4;    ///< Fewer neighbours within the cutoff: no projection (nullopt).
+    /// Reference-plane iterations at most, kMinMlsIterations..kMaxMlsIterations.
+    int max_iterations = 8;
+    /// Stop when the plane's foot point moves less than tolerance * h, 0..kMaxMlsTolerance.
+    float tolerance = 1e-3f;
+    /// Fewer neighbours within the cutoff: no projection (nullopt), kMinMlsNeighbors..kMaxMlsNeighbors.
+    int min_neighbors = 4;
+
+    /// Throws Error(kInvalidArgument, "<field>: <what>") for the first bad field: "h", "degree",
+    /// "cutoff", "max_iterations", "tolerance", "min_neighbors" (e.g. "degree: must lie in 0..2, got 3").
+    void Validate() const;
 };
 
 /// One projection: the point on the MLS surface and the surface normal there.
@@ -40,6 +67,8 @@ struct MlsPoint {
 class MlsSurface {
 public:
     /// Keeps references to `cloud` and `tree` (built over cloud.positions): both must outlive it.
+    /// Calls options.Validate() first; throws kInvalidArgument when h = 0 and the cloud has fewer
+    /// than 2 distinct points to derive it from.
     MlsSurface(const PointCloud& cloud, const KdTree& tree, const MlsOptions& options = {});
     ~MlsSurface();
 

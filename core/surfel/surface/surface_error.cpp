@@ -6,6 +6,7 @@
 #include <random>
 
 #include "surfel/base/error.h"
+#include "surfel/base/validate.h"
 #include "surfel/spatial/kd_tree.h"
 #include "surfel/surface/local_analysis.h"
 #include "surfel/surface/mls.h"
@@ -101,8 +102,15 @@ Sums OneSided(const PointCloud& p, const PointCloud& p_prime, float h_src, float
 
 }  // namespace
 
+void SurfaceErrorOptions::Validate() const {
+    CheckAtLeast("h_source", h_source, 0.0);
+    CheckAtLeast("h_target", h_target, 0.0);
+    CheckRange("degree", degree, kMinMlsDegree, kMaxMlsDegree);
+}
+
 SurfaceError MeasureSurfaceError(const PointCloud& p, const PointCloud& p_prime, const SurfaceErrorOptions& o,
                                  const ProgressFn& progress) {
+    o.Validate();
     Sums a = OneSided(p, p_prime, o.h_source, o.h_target, o.degree, o.max_samples, o.seed, progress);
     if (o.symmetric) {
         Sums b = OneSided(p_prime, p, o.h_target, o.h_source, o.degree, o.max_samples, o.seed + 1, {});

@@ -6,19 +6,24 @@
 
 #include "surfel/base/point_cloud.h"
 #include "surfel/base/progress.h"
+#include "surfel/surface/mls.h"
 
 namespace surfel {
 
 struct SurfaceErrorOptions {
-    float h_source = 0.0f;       ///< MLS scale for S (sampling Q on it); 0 = default of P.
-    float h_target = 0.0f;       ///< MLS scale for S' (measuring distances); 0 = default of P'.
+    float h_source = 0.0f;       ///< MLS scale for S (sampling Q on it), model units, >= 0; 0 = default of P.
+    float h_target = 0.0f;       ///< MLS scale for S' (measuring distances), model units, >= 0; 0 = default of P'.
     std::size_t max_samples = 0; ///< |Q|: 0 = every point of P; else a seeded uniform subset.
-    std::uint64_t seed = 1;
-    /// Polynomial degree of the projection onto S'. The notes use a linear basis (1); its plane
-    /// fit sits inside curved surfaces by about h^2 / (2 r), which would dominate the error of a
-    /// good approximation, so the default is quadratic.
+    std::uint64_t seed = 1;      ///< Seed of that subset; every value is valid.
+    /// Polynomial degree of the projection onto S', kMinMlsDegree..kMaxMlsDegree. The notes use a
+    /// linear basis (1); its plane fit sits inside curved surfaces by about h^2 / (2 r), which
+    /// would dominate the error of a good approximation, so the default is quadratic.
     int degree = 2;
     bool symmetric = false;      ///< Also measure S' -> S and report the larger maximum / mean of both.
+
+    /// Throws Error(kInvalidArgument, "<field>: <what>") for the first bad field: "h_source",
+    /// "h_target", "degree" (e.g. "degree: must lie in 0..2, got 3").
+    void Validate() const;
 };
 
 struct SurfaceError {
@@ -44,7 +49,8 @@ struct SurfaceError {
 
 /// Delta_max(S, S') and Delta_avg(S, S'): Q is P projected onto its own MLS surface S (so Q lies
 /// on S), and d(q, S') = |q - Psi_P'(q)| with the MLS projection onto S' (options.degree); where
-/// that projection fails or extrapolates, the distance to the nearest sample of P'.
+/// that projection fails or extrapolates, the distance to the nearest sample of P'. Calls
+/// options.Validate() first; each cloud needs at least 3 points.
 SurfaceError MeasureSurfaceError(const PointCloud& p, const PointCloud& p_prime, const SurfaceErrorOptions& options = {},
                                  const ProgressFn& progress = {});
 

@@ -1,5 +1,10 @@
 #include <gtest/gtest.h>
 
+#include <limits>
+#include <string>
+#include <vector>
+
+#include "surfel/base/error.h"
 #include "surfel/base/shapes.h"
 #include "surfel/surface/mls.h"
 
@@ -80,6 +85,51 @@ TEST(Mls, AdaptiveScaleFollowsDensityAndTooFewNeighboursFail) {
     ASSERT_TRUE(p);
     EXPECT_NEAR(p->position.norm(), 1.0f, 2e-3f);
     EXPECT_FALSE(mls.Project(Vec3f(10, 10, 10)));  // nothing within reach
+}
+
+// Validate: each bad field names itself and its range, and the MlsSurface constructor checks first.
+TEST(MlsOptions, BadFieldsNameThemselves) {
+    const float inf = std::numeric_limits<float>::infinity(), nan = std::numeric_limits<float>::quiet_NaN();
+    const std::vector<std::pair<MlsOptions, std::string>> cases = {
+        {MlsOptions{.h = -1.0f}, "h: must be finite and at least 0, got -1"},
+        {MlsOptions{.h = nan}, "h: must be finite and at least 0, got nan"},
+        {MlsOptions{.degree = -1}, "degree: must lie in 0..2, got -1"},
+        {MlsOptions{.degree = 3}, "degree: must lie in 0..2, got 3"},
+        {MlsOptions{.cutoff = 0.5f}, "cutoff: must lie in 1..10, got 0.5"},
+        {MlsOptions{.cutoff = inf}, "cutoff: must lie in 1..10, got inf"},
+        {MlsOptions{.max_iterations = 0}, "max_iterations: must lie in 1..1000, got 0"},
+        {MlsOptions{.max_iterations = kMaxMlsIterations + 1}, "max_iterations: must lie in 1..1000, got 1001"},
+        {MlsOptions{.tolerance = -0.25f}, "tolerance: must lie in 0..1, got -0.25"},
+        {MlsOptions{.tolerance = 2.0f}, "tolerance: must lie in 0..1, got 2"},
+        {MlsOptions{.min_neighbors = 0}, "min_neighbors: must lie in 1..100000, got 0"},
+    };
+    ShapeOptions o;
+    o.points = 500;
+    const PointCloud c = SampleShape(Shape::kSphere, o);
+    KdTree tree(c.positions);
+    for (const auto& [options, message] : cases) {
+        for (int call = 0; call < 2; ++call) {
+            try {
+                if (call == 0) options.Validate();
+                else MlsSurface(c, tree, options);
+                ADD_FAILURE() << message << ": accepted";
+            } catch (const Error& e) {
+                EXPECT_EQ(e.code(), ErrorCode::kInvalidArgument) << message;
+                EXPECT_EQ(e.what(), message);
+            }
+        }
+    }
+}
+
+TEST(MlsOptions, DefaultsAndLimitsAreValid) {
+    EXPECT_NO_THROW(MlsOptions{}.Validate());
+    for (int degree = kMinMlsDegree; degree <= kMaxMlsDegree; ++degree)
+        EXPECT_NO_THROW((MlsOptions{.h = 0, .degree = degree, .cutoff = static_cast<float>(kMinMlsCutoff),
+                                    .max_iterations = kMinMlsIterations, .tolerance = 0, .min_neighbors = kMinMlsNeighbors})
+                            .Validate());
+    EXPECT_NO_THROW((MlsOptions{.cutoff = static_cast<float>(kMaxMlsCutoff), .max_iterations = kMaxMlsIterations,
+                                .tolerance = static_cast<float>(kMaxMlsTolerance), .min_neighbors = kMaxMlsNeighbors})
+                        .Validate());
 }
 
 }  // namespace

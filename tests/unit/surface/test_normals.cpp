@@ -1,7 +1,13 @@
 #include <gtest/gtest.h>
 
+#include <algorithm>
+#include <cmath>
 #include <filesystem>
+#include <limits>
+#include <string>
+#include <vector>
 
+#include "surfel/base/error.h"
 #include "surfel/base/shapes.h"
 #include "surfel/io/ply.h"
 #include "surfel/surface/local_analysis.h"
@@ -89,6 +95,229 @@ TEST(Normals, BunnyMatchesGroundTruth) {
     const double fraction = double(good) / truth.size();
     std::printf("bunny: %.2f%% of normals within 30 degrees of the mesh normals\n", 100 * fraction);
     EXPECT_GE(fraction, 0.99);
+}
+
+// Every estimated normal of `cloud` points outward of `shape` (placed at `center`, size `scale`).
+std::size_t CountInward(const PointCloud& cloud, const std::vector<Vec3f>& normals, Shape shape,
+                        const Vec3f& center = Vec3f::Zero(), double scale = 1.0, std::size_t first = 0,
+                        std::size_t last = std::numeric_limits<std::size_t>::max()) {
+    std::size_t inward = 0;
+    for (std::size_t i = first; i < std::min(last, cloud.size()); ++i)
+        inward += normals[i].cast<double>().dot(ShapeNormal(shape, (cloud.positions[i] - center).cast<double>(), scale)) <= 0;
+    return inward;
+}
+
+TEST(Orientation, BoxAllOutward) {
+    ShapeOptions o;
+    o.points = 12000;
+    const PointCloud c = SampleShape(Shape::kBox, o);
+    KdTree tree(c.positions);
+    const NormalResult r = EstimateNormals(tree);
+    EXPECT_EQ(r.components, 1u);
+    EXPECT_EQ(CountInward(c, r.normals, Shape::kBox), 0u);
+}
+
+TEST(Orientation, CylinderAndTorusAllOutward) {
+    for (Shape shape : {Shape::kCylinder, Shape::kTorus}) {
+        SCOPED_TRACE(ShapeName(shape));
+        ShapeOptions o;
+        o.points = 15000;
+        const PointCloud c = SampleShape(shape, o);
+        KdTree tree(c.positions);
+        EXPECT_EQ(CountInward(c, EstimateNormals(tree).normals, shape), 0u);
+    }
+}
+
+// Five disjoint spheres of different sizes, stacked and side by side (one directly below
+// another): five components, each voted outward on its own.
+TEST(Orientation, SeveralDisjointSpheresEachOutward) {
+    const std::vector<std::pair<Vec3f, double>> spheres = {
+        {{0, 0, 0}, 1.0}, {{0, 0, 3}, 0.5}, {{4, 0, 0}, 1.5}, {{0, -4, -1}, 0.3}, {{-3, 2, 1}, 0.8}};
+    PointCloud all;
+    std::vector<std::size_t> first;
+    for (std::size_t s = 0; s < spheres.size(); ++s) {
+        ShapeOptions o;
+        o.points = 3000;
+        o.scale = spheres[s].second;
+        o.seed = 10 + s;
+        const PointCloud c = SampleShape(Shape::kSphere, o);
+        first.push_back(all.size());
+        for (const Vec3f& p : c.positions) all.positions.push_back(p + spheres[s].first);
+    }
+    first.push_back(all.size());
+    KdTree tree(all.positions);
+    const NormalResult r = EstimateNormals(tree);
+    EXPECT_EQ(r.components, spheres.size());
+    for (std::size_t s = 0; s < spheres.size(); ++s)
+        EXPECT_EQ(CountInward(all, r.normals, Shape::kSphere, spheres[s].first, spheres[s].second, first[s], first[s + 1]),
+                  0u)
+            << "sphere " << s;
+}
+
+// The seed does not trust the normal at the extremal point: exact sphere normals with random
+// signs, and the normal at the highest point replaced by one nearly in the tangent plane (what
+// the tip of an ear or a noise spike gets), tilted either way. Every other normal ends outward.
+TEST(Orientation, AWrongNormalAtTheTopDoesNotDecideTheSign) {
+    ShapeOptions o;
+    o.points = 8000;
+    o.normals = true;
+    const PointCloud c = SampleShape(Shape::kSphere, o);
+    KdTree tree(c.positions);
+    const std::size_t top = static_cast<std::size_t>(
+        std::max_element(c.positions.begin(), c.positions.end(), [](const Vec3f& a, const Vec3f& b) { return a.z() < b.z(); }) -
+        c.positions.begin());
+    for (const Vec3f& wrong : {Vec3f(1, 0, 0.02f), Vec3f(-1, 0, 0.02f), Vec3f(0, 1, -0.02f), Vec3f(0, -1, -0.02f)}) {
+        SCOPED_TRACE(::testing::Message() << wrong.transpose());
+        std::vector<Vec3f> normals = c.normals;
+        std::uint64_t state = 7;
+        for (Vec3f& n : normals) {
+            state = state * 6364136223846793005ull + 1442695040888963407ull;
+            if (state >> 63) n = -n;
+        }
+        normals[top] = wrong.normalized();
+        std::size_t flipped = 0;
+        EXPECT_EQ(OrientNormals(tree, normals, {}, &flipped), 1u);
+        std::size_t inward = 0;
+        for (std::size_t i = 0; i < c.size(); ++i)
+            if (i != top) inward += normals[i].dot(c.normals[i]) <= 0;
+        EXPECT_EQ(inward, 0u);
+        EXPECT_GT(flipped, c.size() / 4);  // about half the random signs were turned
+    }
+}
+
+// A flat sheet bounds no volume: its votes along d and -d cancel, and CGAL's rule orients it
+// (the normal at the highest point, here every point, points up).
+TEST(Orientation, FlatSheetPointsUp) {
+    ShapeOptions o;
+    o.points = 5000;
+    const PointCloud c = SampleShape(Shape::kPlane, o);
+    KdTree tree(c.positions);
+    const NormalResult r = EstimateNormals(tree);
+    for (std::size_t i = 0; i < c.size(); ++i) ASSERT_GT(r.normals[i].z(), 0.99f) << i;
+}
+
+// A slab thinner than the orientation graph's neighbourhoods: the box squashed to 4 % of its
+// height (its faces keep their normals). Edges across the slab join antiparallel normals, the
+// cheapest edges under Hoppe's cost alone; the crossing term keeps the tree on the faces.
+TEST(Orientation, ThinSlabOutwardWithTheCrossingTerm) {
+    ShapeOptions o;
+    o.points = 30000;
+    const PointCloud box = SampleShape(Shape::kBox, o);
+    PointCloud slab = box;
+    for (Vec3f& p : slab.positions) p.z() *= 0.04f;
+    KdTree tree(slab.positions);
+    auto inward = [&](float weight) {
+        const NormalResult r = EstimateNormals(tree, {.orient_crossing_weight = weight});
+        std::size_t count = 0;
+        for (std::size_t i = 0; i < slab.size(); ++i)
+            count += r.normals[i].cast<double>().dot(ShapeNormal(Shape::kBox, box.positions[i].cast<double>())) <= 0;
+        return count;
+    };
+    const std::size_t plain = inward(0.0f), crossing = inward(NormalOptions{}.orient_crossing_weight);
+    std::printf("thin slab: %zu of %zu normals inward with Hoppe's cost, %zu with the crossing term\n", plain,
+                slab.size(), crossing);
+    EXPECT_LE(crossing, slab.size() / 1000);
+}
+
+// Orientation against the scanned models' meshes: every `<name>_mesh.ply` in the shared data
+// with its point cloud `<name>.ply` (the mesh's vertices, in the same order). The reference is
+// the mesh's area-weighted vertex normal (the sum of the cross products of the faces around the
+// vertex); the mesh's own winding is checked to be outward by its signed volume
+// (1/6 sum v0 . (v1 x v2) > 0). Vertices whose face normals cancel (the zero-thickness fins of
+// the dragon and buddha decimations) have no reference and are not counted.
+struct OrientationAgreement {
+    std::size_t compared = 0, outward = 0, components = 0;
+    double signed_volume = 0;
+    double fraction() const { return compared ? double(outward) / double(compared) : 0.0; }
+};
+
+OrientationAgreement AgreementWithMesh(const PointCloud& cloud, const PointCloud& mesh) {
+    std::vector<Vec3d> reference(mesh.size(), Vec3d::Zero());
+    OrientationAgreement a;
+    for (const auto& t : mesh.triangles) {
+        const Vec3d p0 = mesh.positions[t[0]].cast<double>(), p1 = mesh.positions[t[1]].cast<double>(),
+                    p2 = mesh.positions[t[2]].cast<double>();
+        const Vec3d c = (p1 - p0).cross(p2 - p0);  // twice the area times the face normal
+        for (auto v : t) reference[v] += c;
+        a.signed_volume += p0.dot(p1.cross(p2)) / 6.0;
+    }
+    KdTree tree(cloud.positions);
+    const NormalResult r = EstimateNormals(tree);
+    a.components = r.components;
+    for (std::size_t i = 0; i < cloud.size(); ++i) {
+        const double len = reference[i].norm();
+        if (!(len > 0)) continue;
+        ++a.compared;
+        a.outward += r.normals[i].cast<double>().dot(reference[i]) > 0;
+    }
+    return a;
+}
+
+TEST(Normals, OutwardOnEveryScannedModelWithAMesh) {
+    const std::filesystem::path dir = SURFEL_SHARED_DATA_DIR;
+    if (!std::filesystem::is_directory(dir)) GTEST_SKIP() << dir << " not present";
+    std::vector<std::string> models;
+    const std::string suffix = "_mesh.ply";
+    for (const auto& entry : std::filesystem::directory_iterator(dir)) {
+        const std::string name = entry.path().filename().string();
+        if (name.size() > suffix.size() && name.ends_with(suffix))
+            models.push_back(name.substr(0, name.size() - suffix.size()));
+    }
+    std::sort(models.begin(), models.end());
+    if (models.empty()) GTEST_SKIP() << "no *_mesh.ply in " << dir;
+    for (const std::string& model : models) {
+        SCOPED_TRACE(model);
+        const PointCloud mesh = ReadPly((dir / (model + suffix)).string());
+        const PointCloud cloud = ReadPly((dir / (model + ".ply")).string());
+        ASSERT_EQ(cloud.positions, mesh.positions) << "the cloud is the mesh's vertices, in order";
+        const OrientationAgreement a = AgreementWithMesh(cloud, mesh);
+        std::printf("%-10s %7zu points, %3zu components: %6.2f%% of normals outward (mesh volume %.3g)\n",
+                    model.c_str(), a.compared, a.components, 100.0 * a.fraction(), a.signed_volume);
+        EXPECT_GT(a.signed_volume, 0.0) << "the reference mesh must be wound outward";
+        EXPECT_GT(a.compared, cloud.size() * 9 / 10);
+        EXPECT_GE(a.fraction(), 0.99);
+    }
+}
+
+
+// Validate: each bad field names itself and its range, and EstimateNormals checks first.
+TEST(NormalOptions, BadFieldsNameThemselves) {
+    const float inf = std::numeric_limits<float>::infinity(), nan = std::numeric_limits<float>::quiet_NaN();
+    const std::vector<std::pair<NormalOptions, std::string>> cases = {
+        {NormalOptions{.k = 1}, "k: must lie in 3..1000, got 1"},
+        {NormalOptions{.k = kMaxNormalNeighbors + 1}, "k: must lie in 3..1000, got 1001"},
+        {NormalOptions{.h = -0.5f}, "h: must be finite and at least 0, got -0.5"},
+        {NormalOptions{.h = inf}, "h: must be finite and at least 0, got inf"},
+        {NormalOptions{.orient_k = 0}, "orient_k: must lie in 1..1000, got 0"},
+        {NormalOptions{.orient_k = 5000}, "orient_k: must lie in 1..1000, got 5000"},
+        {NormalOptions{.orient_crossing_weight = -1.0f}, "orient_crossing_weight: must lie in 0..100, got -1"},
+        {NormalOptions{.orient_crossing_weight = nan}, "orient_crossing_weight: must lie in 0..100, got nan"},
+    };
+    ShapeOptions o;
+    o.points = 500;
+    KdTree tree(SampleShape(Shape::kSphere, o).positions);
+    for (const auto& [options, message] : cases) {
+        for (int call = 0; call < 2; ++call) {
+            try {
+                if (call == 0) options.Validate();
+                else EstimateNormals(tree, options);
+                ADD_FAILURE() << message << ": accepted";
+            } catch (const Error& e) {
+                EXPECT_EQ(e.code(), ErrorCode::kInvalidArgument) << message;
+                EXPECT_EQ(e.what(), message);
+            }
+        }
+    }
+}
+
+TEST(NormalOptions, DefaultsAndLimitsAreValid) {
+    EXPECT_NO_THROW(NormalOptions{}.Validate());
+    EXPECT_NO_THROW((NormalOptions{.k = kMinNormalNeighbors, .h = 0, .orient_k = kMinOrientNeighbors,
+                                   .orient_crossing_weight = 0})
+                        .Validate());
+    EXPECT_NO_THROW((NormalOptions{.k = kMaxNormalNeighbors, .orient_k = kMaxOrientNeighbors,
+                                   .orient_crossing_weight = static_cast<float>(kMaxOrientCrossingWeight)})
+                        .Validate());
 }
 
 }  // namespace

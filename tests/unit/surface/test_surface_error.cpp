@@ -1,5 +1,10 @@
 #include <gtest/gtest.h>
 
+#include <limits>
+#include <string>
+#include <vector>
+
+#include "surfel/base/error.h"
 #include "surfel/base/shapes.h"
 #include "surfel/surface/surface_error.h"
 
@@ -57,6 +62,34 @@ TEST(SurfaceError, AverageIsOverAreaWhateverTheSamplingDensity) {
     EXPECT_NEAR(e.avg, 0.5 * t, 0.03 * t);
     EXPECT_NEAR(e.avg_per_sample, 2.5 / (11.0 / 3.0) * t, 0.03 * t);
     EXPECT_NEAR(e.max, t, 0.1 * t);
+}
+
+// Validate: each bad field names itself and its range, and MeasureSurfaceError checks first.
+TEST(SurfaceErrorOptions, BadFieldsNameThemselves) {
+    const float inf = std::numeric_limits<float>::infinity();
+    const std::vector<std::pair<SurfaceErrorOptions, std::string>> cases = {
+        {SurfaceErrorOptions{.h_source = -0.01f}, "h_source: must be finite and at least 0, got -0.01"},
+        {SurfaceErrorOptions{.h_target = inf}, "h_target: must be finite and at least 0, got inf"},
+        {SurfaceErrorOptions{.degree = 3}, "degree: must lie in 0..2, got 3"},
+        {SurfaceErrorOptions{.degree = -2}, "degree: must lie in 0..2, got -2"},
+    };
+    ShapeOptions o;
+    o.points = 500;
+    const PointCloud a = SampleShape(Shape::kSphere, o);
+    for (const auto& [options, message] : cases) {
+        for (int call = 0; call < 2; ++call) {
+            try {
+                if (call == 0) options.Validate();
+                else MeasureSurfaceError(a, a, options);
+                ADD_FAILURE() << message << ": accepted";
+            } catch (const Error& e) {
+                EXPECT_EQ(e.code(), ErrorCode::kInvalidArgument) << message;
+                EXPECT_EQ(e.what(), message);
+            }
+        }
+    }
+    EXPECT_NO_THROW(SurfaceErrorOptions{}.Validate());
+    EXPECT_NO_THROW((SurfaceErrorOptions{.h_source = 0, .h_target = 0, .degree = kMinMlsDegree}).Validate());
 }
 
 }  // namespace
