@@ -195,7 +195,7 @@ Clustering HierarchicalClustering(std::span<const Vec3f> points, const SimplifyO
     } else {
         // Recursive variant: split while larger than n_max, more varied than sigma_max
         // (adaptive) or farther from the cluster plane than the error bound.
-        const std::size_t n_max = options.max_cluster_size ? options.max_cluster_size : 10;
+        const std::size_t n_max = options.max_cluster_size;
         std::vector<Node> stack{MakeNode(items, 0, n, options.adaptive)};
         std::size_t covered = 0;
         while (!stack.empty()) {
@@ -388,7 +388,7 @@ Clustering IncrementalClustering(std::span<const Vec3f> points, const SimplifyOp
     const KnnTable graph = tree.KnnAll(std::max(2, std::min<int>(options.neighbors, static_cast<int>(n) - 1)));
     progress.Advance(0.1);
     if (options.target == 0) {
-        GrowParams params{options.max_cluster_size ? options.max_cluster_size : 10,
+        GrowParams params{options.max_cluster_size,
                           options.adaptive ? options.max_variation : 0.0};
         Clustering c = GrowClusters(points, graph, params, options.seed);
         progress.Advance(0.9);

@@ -6,6 +6,7 @@
 #include <string>
 
 #include "surfel/base/error.h"
+#include "surfel/base/validate.h"
 #include "surfel/simplify/simplify_internal.h"
 #include "surfel/spatial/kd_tree.h"
 #include "surfel/surface/local_analysis.h"
@@ -25,10 +26,25 @@ const char* SimplifyMethodName(SimplifyMethod method) {
 }
 
 std::optional<SimplifyMethod> ParseSimplifyMethod(std::string_view name) {
-    for (SimplifyMethod m : {SimplifyMethod::kHierarchical, SimplifyMethod::kIncremental, SimplifyMethod::kIterative,
-                             SimplifyMethod::kParticle, SimplifyMethod::kVoxel})
+    for (SimplifyMethod m : kSimplifyMethods)
         if (name == SimplifyMethodName(m)) return m;
     return std::nullopt;
+}
+
+// Validation: one check per field in the order of the job spec, then the combinations.
+void SimplifyOptions::Validate() const {
+    if (std::find(kSimplifyMethods.begin(), kSimplifyMethods.end(), method) == kSimplifyMethods.end())
+        InvalidField("method", "unknown method " + std::to_string(static_cast<int>(method)));
+    CheckRange("error", error, 0.0, kMaxErrorBound);
+    if (target > 0 && error > 0) InvalidField("target", "give target or error, not both");
+    CheckRange("max_variation", max_variation, kMinMaxVariation, kMaxMaxVariation);
+    const bool error_bound = method == SimplifyMethod::kHierarchical || method == SimplifyMethod::kIterative;
+    const bool own_bound = method == SimplifyMethod::kHierarchical || method == SimplifyMethod::kIncremental;
+    if (error > 0 && !error_bound) InvalidField("error", "this method takes a target, not an error bound");
+    if (target == 0 && error == 0 && !own_bound) InvalidField("target", "is required for this method");
+    CheckRange("max_cluster_size", static_cast<double>(max_cluster_size), 1.0, static_cast<double>(kMaxMaxClusterSize));
+    CheckRange("neighbors", neighbors, kMinNeighbors, kMaxNeighbors);
+    CheckRange("particle_iterations", particle_iterations, 0, kMaxParticleIterations);
 }
 
 double PeakResidentMiB() {
@@ -162,28 +178,11 @@ PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> nor
 SimplifyResult Simplify(const PointCloud& input, const SimplifyOptions& options, const ProgressFn& progress) {
     const std::string method = SimplifyMethodName(options.method);
     const std::size_t n = input.size();
+    options.Validate();
     if (n == 0) throw Error(ErrorCode::kInvalidArgument, "simplify: the input cloud has no points");
     if (options.target > n)
-        throw Error(ErrorCode::kInvalidArgument, "simplify: target " + std::to_string(options.target) +
-                                                     " is larger than the input (" + std::to_string(n) + " points)");
-    if (options.error < 0 || !std::isfinite(options.error))
-        throw Error(ErrorCode::kInvalidArgument, "simplify: the error bound must be a finite number >= 0");
-    if (options.target > 0 && options.error > 0)
-        throw Error(ErrorCode::kInvalidArgument, "simplify: give either a target count or an error bound, not both");
-    const bool has_error_bound = options.method == SimplifyMethod::kIterative ||
-                                 options.method == SimplifyMethod::kHierarchical;
-    if (options.error > 0 && !has_error_bound)
-        throw Error(ErrorCode::kInvalidArgument,
-                    "simplify: method '" + method + "' takes no error bound; use a target count "
-                    "(error bounds: hierarchical, iterative)");
-    const bool has_own_bound = options.method == SimplifyMethod::kHierarchical ||
-                               options.method == SimplifyMethod::kIncremental;
-    if (options.target == 0 && options.error <= 0 && !has_own_bound)
-        throw Error(ErrorCode::kInvalidArgument, "simplify: method '" + method + "' needs a target count");
-    if (options.max_variation <= 0 || options.max_variation > 1.0 / 3.0)
-        throw Error(ErrorCode::kInvalidArgument, "simplify: max variation must lie in (0, 1/3]");
-    if (options.neighbors < 1 || options.neighbors > 64)
-        throw Error(ErrorCode::kInvalidArgument, "simplify: neighbours must lie in [1, 64]");
+        InvalidField("target", "must not exceed the input's " + std::to_string(n) + " points, got " +
+                                   std::to_string(options.target));
     if (options.method == SimplifyMethod::kParticle && n < 8)
         throw Error(ErrorCode::kInvalidArgument, "simplify: particle simulation needs at least 8 input points");
 
@@ -214,7 +213,9 @@ SimplifyResult Simplify(const PointCloud& input, const SimplifyOptions& options,
         }
         variation = std::move(nr.surface_variation);
     }
-    tracker.Check();
+    // Report the start (fraction 0) whatever the method: a small job whose method reports in
+    // coarse steps still shows its stage, and a cancel that came before the work stops it here.
+    tracker.Advance(0.0);
 
     Clustering clusters;
     std::vector<Vec3f> positions, particle_normals;
@@ -232,7 +233,13 @@ SimplifyResult Simplify(const PointCloud& input, const SimplifyOptions& options,
             clusters = detail::IterativeSimplification(input.positions, normals, options, positions, tracker);
             break;
         case SimplifyMethod::kParticle: {
-            detail::ParticleSimulation(input, normals, variation, options, positions, particle_normals, tracker);
+            // Particle simulation (2.3) by the resample module's engine.
+            const ParticleEngine engine(input, normals, variation, options.adaptive);
+            ParticleParams params;
+            params.count = options.target;
+            params.seed = options.seed;
+            params.iterations = options.particle_iterations;
+            engine.Run(params, positions, particle_normals, tracker);
             // Clusters for the attributes: each original point belongs to its closest particle.
             const KdTree ptree(positions);
             clusters.label.resize(n);

@@ -5,6 +5,7 @@
 /// voxel-grid baseline. Every method can hit an exact output count; the result carries
 /// consistently oriented normals, averaged colours and splat radii that cover the input.
 
+#include <array>
 #include <cstdint>
 #include <optional>
 #include <string>
@@ -29,28 +30,64 @@ enum class SimplifyMethod {
 const char* SimplifyMethodName(SimplifyMethod method);
 /// Parses a method name; nullopt when unknown.
 std::optional<SimplifyMethod> ParseSimplifyMethod(std::string_view name);
+/// Every method, in declaration order (for loops, help texts and validation).
+inline constexpr std::array<SimplifyMethod, 5> kSimplifyMethods = {
+    SimplifyMethod::kHierarchical, SimplifyMethod::kIncremental, SimplifyMethod::kIterative,
+    SimplifyMethod::kParticle, SimplifyMethod::kVoxel};
+
+/// Limits of SimplifyOptions, written once here; the CLI, the worker and the docs read them.
+/// Smallest sigma_max (notes 2.1: surface variation sigma_n = lambda_0 / (lambda_0 + lambda_1 + lambda_2)).
+inline constexpr double kMinMaxVariation = 1e-12;
+/// Largest sigma_max: the surface variation of an isotropic point set, its upper bound.
+inline constexpr double kMaxMaxVariation = 1.0 / 3.0;
+/// Largest n_max of clustering without a target: above any cloud the service takes, so that
+/// n_max = kMaxMaxClusterSize leaves the splitting to the error bound alone.
+inline constexpr std::size_t kMaxMaxClusterSize = 1000000000;
+/// Largest error bound, model units (a bound that large keeps one cluster or point).
+inline constexpr double kMaxErrorBound = 1e30;
+/// Range of `neighbors`, the k of the neighbour graph.
+inline constexpr int kMinNeighbors = 1;
+inline constexpr int kMaxNeighbors = 64;
+/// Largest `particle_iterations`.
+inline constexpr int kMaxParticleIterations = 1000;
 
 struct SimplifyOptions {
     SimplifyMethod method = SimplifyMethod::kHierarchical;
     /// Exact number of output points (every method). 0 = use the method's own bound instead:
     /// `error` (iterative, hierarchical) or `max_cluster_size` / `max_variation` (clustering).
+    /// Required for particle and voxel, and for iterative without `error`. At most the input's
+    /// size (checked by Simplify, not by Validate).
     std::size_t target = 0;
-    /// Error bound in model units: iterative stops before the RMS distance of a contracted
-    /// point to its tangent planes would exceed it; hierarchical splits every cluster whose
-    /// points lie farther than this from the cluster's plane. 0 = none.
+    /// Error bound in model units, 0..kMaxErrorBound: iterative stops before the RMS distance of
+    /// a contracted point to its tangent planes would exceed it; hierarchical splits every
+    /// cluster whose points lie farther than this from the cluster's plane. 0 = none. Only
+    /// hierarchical and iterative take one, and never together with `target`.
     double error = 0.0;
     /// Curvature-adaptive variant: clusters bounded by surface variation, particle radii scaled
     /// by 1 / sigma_n, so more points go where the surface bends.
     bool adaptive = false;
-    /// sigma_max, the largest surface variation of a cluster in adaptive clustering (notes 2.1).
+    /// sigma_max, the largest surface variation of a cluster in adaptive clustering (notes 2.1),
+    /// kMinMaxVariation..kMaxMaxVariation.
     double max_variation = 0.01;
-    /// n_max for clustering without a target (hierarchical, incremental). 0 = 10.
-    std::size_t max_cluster_size = 0;
-    std::uint64_t seed = 1;          ///< Seeds (incremental) and initial spreading (particle).
-    int neighbors = 6;               ///< k of the neighbour graph (incremental growth, iterative pairs).
-    int particle_iterations = 40;    ///< Relaxation steps of the particle simulation.
-    bool measure_error = true;       ///< Compute the quality report (Delta_max, Delta_avg).
-    std::size_t error_samples = 20000; ///< |Q| for the quality report (0 = every input point).
+    /// n_max, the largest cluster of clustering without a target (hierarchical, incremental),
+    /// 1..kMaxMaxClusterSize.
+    std::size_t max_cluster_size = 10;
+    /// Seeds (incremental) and the initial spreading (particle); every value is valid.
+    std::uint64_t seed = 1;
+    /// k of the neighbour graph (incremental growth, iterative pairs), kMinNeighbors..kMaxNeighbors.
+    int neighbors = 6;
+    /// Relaxation steps of the particle simulation, 0..kMaxParticleIterations.
+    int particle_iterations = 40;
+    bool measure_error = true;          ///< Compute the quality report (Delta_max, Delta_avg).
+    std::size_t error_samples = 20000;  ///< |Q| for the quality report (0 = every input point).
+
+    /// Throws Error(kInvalidArgument, "<field>: <what>") for the first bad field, named as in
+    /// the job spec (proto SimplifyJob): "method", "target", "error", "max_variation",
+    /// "max_cluster_size", "neighbors", "particle_iterations"; ranges read "must lie in LO..HI,
+    /// got V". Combinations: "target: give target or error, not both", "error: this method
+    /// takes a target, not an error bound", "target: is required for this method". Options
+    /// only: a target above the input's size is checked by Simplify().
+    void Validate() const;
 };
 
 /// The quality report of one simplification.
@@ -71,9 +108,9 @@ struct SimplifyResult {
     SimplifyReport report;
 };
 
-/// Simplifies `input` as `options` say. Throws Error(kInvalidArgument) for an impossible request
-/// (empty cloud, target above the input size, an error bound on a method without one, no
-/// bound at all) and Error(kCancelled) when `progress` asks to stop. The result is the same for
+/// Simplifies `input` as `options` say. Throws Error(kInvalidArgument) for bad options
+/// (options.Validate()) and for an impossible request on this input (an empty cloud, a target
+/// above the input size, particle simulation on fewer than 8 points) and Error(kCancelled) when `progress` asks to stop. The result is the same for
 /// the same input, options and seed, whatever the thread count.
 SimplifyResult Simplify(const PointCloud& input, const SimplifyOptions& options, const ProgressFn& progress = {});
 

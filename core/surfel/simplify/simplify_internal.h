@@ -4,11 +4,11 @@
 #include <Eigen/Core>
 #include <Eigen/Eigenvalues>
 #include <cstdint>
-#include <random>
 #include <span>
 #include <vector>
 
 #include "surfel/base/progress.h"
+#include "surfel/resample/particle_engine.h"
 #include "surfel/simplify/simplify.h"
 
 namespace surfel::detail {
@@ -51,16 +51,7 @@ struct Spread {
 };
 Spread Analyze(const Moments& m);
 
-/// Portable uniform numbers from mt19937_64 (whose output sequence the standard fixes).
-class Random {
-public:
-    explicit Random(std::uint64_t seed) : engine_(seed) {}
-    double Uniform() { return static_cast<double>(engine_() >> 11) * (1.0 / 9007199254740992.0); }
-    std::size_t Index(std::size_t n) { return static_cast<std::size_t>(Uniform() * static_cast<double>(n)) % n; }
-
-private:
-    std::mt19937_64 engine_;
-};
+// Random, the portable generator, comes with the particle engine (surfel/resample/particle_engine.h).
 
 /// Relabels `label` to 0..count-1 in order of first appearance of each cluster's smallest member
 /// index (deterministic), returns count.
@@ -82,10 +73,5 @@ Clustering VoxelClustering(std::span<const Vec3f> points, const SimplifyOptions&
 Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<const Vec3f> normals,
                                    const SimplifyOptions& options, std::vector<Vec3f>& positions,
                                    ProgressTracker& progress);
-
-/// Particle simulation: returns particle positions and normals (MLS-projected at the end).
-void ParticleSimulation(const PointCloud& input, std::span<const Vec3f> normals,
-                        std::span<const float> variation, const SimplifyOptions& options,
-                        std::vector<Vec3f>& positions, std::vector<Vec3f>& out_normals, ProgressTracker& progress);
 
 }  // namespace surfel::detail

@@ -249,6 +249,119 @@ TEST(Simplify, RejectsImpossibleRequests) {
     EXPECT_THROW(Simplify(PointCloud{}, SimplifyOptions{}), Error);
 }
 
+// Each bad option, alone on top of valid defaults, gives this exact message.
+struct BadOption {
+    const char* what;
+    void (*set)(SimplifyOptions&);
+    const char* message;
+};
+
+TEST(SimplifyOptions, ValidateNamesTheFieldAndTheRange) {
+    const BadOption table[] = {
+        {"unknown method", [](SimplifyOptions& o) { o.method = static_cast<SimplifyMethod>(42); },
+         "method: unknown method 42"},
+        {"negative error", [](SimplifyOptions& o) { o.error = -1; }, "error: must lie in 0..1e+30, got -1"},
+        {"NaN error", [](SimplifyOptions& o) { o.error = std::nan(""); }, "error: must lie in 0..1e+30, got nan"},
+        {"infinite error", [](SimplifyOptions& o) { o.error = INFINITY; }, "error: must lie in 0..1e+30, got inf"},
+        {"target and error",
+         [](SimplifyOptions& o) {
+             o.target = 10;
+             o.error = 0.1;
+         },
+         "target: give target or error, not both"},
+        {"zero max_variation", [](SimplifyOptions& o) { o.max_variation = 0; },
+         "max_variation: must lie in 1e-12..0.333333, got 0"},
+        {"max_variation above 1/3", [](SimplifyOptions& o) { o.max_variation = 0.5; },
+         "max_variation: must lie in 1e-12..0.333333, got 0.5"},
+        {"error on particles",
+         [](SimplifyOptions& o) {
+             o.method = SimplifyMethod::kParticle;
+             o.error = 0.1;
+         },
+         "error: this method takes a target, not an error bound"},
+        {"error on incremental",
+         [](SimplifyOptions& o) {
+             o.method = SimplifyMethod::kIncremental;
+             o.error = 0.1;
+         },
+         "error: this method takes a target, not an error bound"},
+        {"particle without target", [](SimplifyOptions& o) { o.method = SimplifyMethod::kParticle; },
+         "target: is required for this method"},
+        {"voxel without target", [](SimplifyOptions& o) { o.method = SimplifyMethod::kVoxel; },
+         "target: is required for this method"},
+        {"iterative without bound", [](SimplifyOptions& o) { o.method = SimplifyMethod::kIterative; },
+         "target: is required for this method"},
+        {"zero max_cluster_size", [](SimplifyOptions& o) { o.max_cluster_size = 0; },
+         "max_cluster_size: must lie in 1..1e+09, got 0"},
+        {"huge max_cluster_size", [](SimplifyOptions& o) { o.max_cluster_size = 2000000000; },
+         "max_cluster_size: must lie in 1..1e+09, got 2e+09"},
+        {"zero neighbors", [](SimplifyOptions& o) { o.neighbors = 0; }, "neighbors: must lie in 1..64, got 0"},
+        {"65 neighbors", [](SimplifyOptions& o) { o.neighbors = 65; }, "neighbors: must lie in 1..64, got 65"},
+        {"negative particle_iterations", [](SimplifyOptions& o) { o.particle_iterations = -1; },
+         "particle_iterations: must lie in 0..1000, got -1"},
+        {"too many particle_iterations", [](SimplifyOptions& o) { o.particle_iterations = 1001; },
+         "particle_iterations: must lie in 0..1000, got 1001"},
+    };
+    for (const BadOption& bad : table) {
+        SimplifyOptions o;
+        bad.set(o);
+        try {
+            o.Validate();
+            ADD_FAILURE() << bad.what << ": accepted";
+        } catch (const Error& e) {
+            EXPECT_EQ(e.code(), ErrorCode::kInvalidArgument) << bad.what;
+            EXPECT_STREQ(e.what(), bad.message) << bad.what;
+        }
+        // Simplify() validates the same way before it looks at the input.
+        try {
+            Simplify(Sphere(100), o);
+            ADD_FAILURE() << bad.what << ": Simplify accepted";
+        } catch (const Error& e) {
+            EXPECT_STREQ(e.what(), bad.message) << bad.what;
+        }
+    }
+}
+
+TEST(SimplifyOptions, DefaultsAndLimitsAreValid) {
+    SimplifyOptions o;
+    EXPECT_NO_THROW(o.Validate());  // hierarchical with its own bound, n_max = 10
+    EXPECT_EQ(o.max_cluster_size, 10u);
+    for (SimplifyMethod m : kAllMethods) {
+        o = SimplifyOptions{};
+        o.method = m;
+        o.target = 5;
+        o.max_variation = kMinMaxVariation;
+        o.max_cluster_size = kMaxMaxClusterSize;
+        o.neighbors = kMaxNeighbors;
+        o.particle_iterations = kMaxParticleIterations;
+        EXPECT_NO_THROW(o.Validate()) << SimplifyMethodName(m);
+        o.max_variation = kMaxMaxVariation;
+        o.max_cluster_size = 1;
+        o.neighbors = kMinNeighbors;
+        o.particle_iterations = 0;
+        EXPECT_NO_THROW(o.Validate()) << SimplifyMethodName(m);
+    }
+    o = SimplifyOptions{};
+    o.method = SimplifyMethod::kIterative;
+    o.error = 0.01;  // an error bound instead of a target
+    EXPECT_NO_THROW(o.Validate());
+    o.method = SimplifyMethod::kIncremental;
+    o.error = 0;  // its own bound, n_max
+    EXPECT_NO_THROW(o.Validate());
+}
+
+TEST(Simplify, TargetAboveTheInputNamesTheTarget) {
+    SimplifyOptions o;
+    o.target = 101;
+    try {
+        Simplify(Sphere(100), o);
+        FAIL() << "accepted";
+    } catch (const Error& e) {
+        EXPECT_EQ(e.code(), ErrorCode::kInvalidArgument);
+        EXPECT_STREQ(e.what(), "target: must not exceed the input's 100 points, got 101");
+    }
+}
+
 TEST(Simplify, CanBeCancelled) {
     const PointCloud c = Sphere(20000);
     SimplifyOptions o;

@@ -2,6 +2,8 @@
 // linear repulsion within radius r on a dynamic grid, kept on the surface by projection onto the
 // tangent plane of the closest original point, final MLS projection.
 
+#include "surfel/resample/particle_engine.h"
+
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
 
@@ -11,64 +13,77 @@
 #include <numeric>
 
 #include "surfel/base/error.h"
-#include "surfel/simplify/simplify_internal.h"
 #include "surfel/spatial/kd_tree.h"
 #include "surfel/spatial/uniform_grid.h"
 #include "surfel/surface/local_analysis.h"
 #include "surfel/surface/mls.h"
 
-namespace surfel::detail {
+namespace surfel {
 
-void ParticleSimulation(const PointCloud& input, std::span<const Vec3f> normals, std::span<const float> variation,
-                        const SimplifyOptions& options, std::vector<Vec3f>& positions,
-                        std::vector<Vec3f>& out_normals, ProgressTracker& progress) {
+ParticleEngine::ParticleEngine(const PointCloud& input, std::span<const Vec3f> normals,
+                               std::span<const float> variation, bool adaptive)
+    : input_(input), normals_(normals) {
     const std::span<const Vec3f> points = input.positions;
     const std::size_t n = points.size();
-    const std::size_t m = options.target;
-    const KdTree tree(points);
-    const SamplingDensity density = ComputeSamplingDensity(tree, std::min<int>(6, static_cast<int>(n) - 1));
+    SURFEL_CHECK(n >= 2 && normals.size() == n, "n = " << n << ", normals = " << normals.size());
+    tree_ = std::make_unique<KdTree>(points);
+    const SamplingDensity density = ComputeSamplingDensity(*tree_, std::min<int>(6, static_cast<int>(n) - 1));
+    reach_radius_ = density.radius;
 
     // Per original point: the area it represents (1 / rho, notes 2.3.1) and the radius scale. The
     // adaptive variant scales the repulsion radius with the inverse of the variation (2.3.4),
     // relative to the median and clamped to [1/2, 2] so flat regions keep some particles.
-    std::vector<double> scale(n, 1.0);
-    if (options.adaptive && !variation.empty()) {
+    scale_.assign(n, 1.0);
+    if (adaptive && !variation.empty()) {
         std::vector<float> sorted(variation.begin(), variation.end());
         std::nth_element(sorted.begin(), sorted.begin() + static_cast<std::ptrdiff_t>(n / 2), sorted.end());
         const double median = std::max(1e-12, static_cast<double>(sorted[n / 2]));
         for (std::size_t i = 0; i < n; ++i)
-            scale[i] = std::clamp(median / std::max(1e-12, static_cast<double>(variation[i])), 0.5, 2.0);
+            scale_[i] = std::clamp(median / std::max(1e-12, static_cast<double>(variation[i])), 0.5, 2.0);
     }
     // Outliers (isolated samples: tiny density, so a huge area) would draw particles away from
     // the surface: an area counts at most 4x the median, a reach (below) at most 2x the median.
     std::vector<float> sorted_radius(density.radius);
     std::nth_element(sorted_radius.begin(), sorted_radius.begin() + static_cast<std::ptrdiff_t>(n / 2),
                      sorted_radius.end());
-    const float median_radius = sorted_radius[n / 2];
-    const double max_area = 4.0 * std::numbers::pi * double(median_radius) * median_radius / 6.0;
-    std::vector<double> weight(n);
-    double total = 0.0;
+    median_radius_ = sorted_radius[n / 2];
+    const double max_area = 4.0 * std::numbers::pi * double(median_radius_) * median_radius_ / 6.0;
+    weight_.resize(n);
+    total_ = 0.0;
     for (std::size_t i = 0; i < n; ++i) {
         const double area = std::min(max_area, 1.0 / std::max(1e-30, static_cast<double>(density.density[i])));
-        weight[i] = area / (scale[i] * scale[i]);  // expected particles ~ area / r^2
-        total += weight[i];
+        weight_[i] = area / (scale_[i] * scale_[i]);  // expected particles ~ area / r^2
+        total_ += weight_[i];
     }
+}
+
+ParticleEngine::~ParticleEngine() = default;
+
+void ParticleEngine::Run(const ParticleParams& params, std::vector<Vec3f>& positions,
+                         std::vector<Vec3f>& out_normals, ProgressTracker& progress) const {
+    const std::span<const Vec3f> points = input_.positions;
+    const std::span<const Vec3f> normals = normals_;
+    const KdTree& tree = *tree_;
+    const std::size_t n = points.size();
+    const std::size_t m = params.count;
+    SURFEL_CHECK(m >= 1);
     // Uniform repulsion radius for this many particles: a bit above the hexagonal spacing of
     // total / m area per particle, so that neighbours push until the spacing is even.
-    const double r0 = 2.0 * std::sqrt(total / (std::numbers::pi * static_cast<double>(m)));
+    const double particles = static_cast<double>(params.fixed_input ? m + n : m);
+    const double r0 = 2.0 * std::sqrt(total_ / (std::numbers::pi * particles));
     progress.Advance(0.05);
 
     // Spread: systematic sampling over the cumulative weights (seeded offset), plus a small
     // seeded tangential jitter so that particles on the same original point separate.
-    Random rng(options.seed);
+    detail::Random rng(params.seed);
     positions.resize(m);
     std::vector<std::uint32_t> home(m);
     {
-        const double step = total / static_cast<double>(m);
+        const double step = total_ / static_cast<double>(m);
         double next = rng.Uniform() * step, acc = 0.0;
         std::size_t i = 0;
         for (std::size_t p = 0; p < m; ++p) {
-            while (i + 1 < n && acc + weight[i] < next) acc += weight[i++];
+            while (i + 1 < n && acc + weight_[i] < next) acc += weight_[i++];
             home[p] = static_cast<std::uint32_t>(i);
             next += step;
         }
@@ -84,16 +99,24 @@ void ParticleSimulation(const PointCloud& input, std::span<const Vec3f> normals,
 
     std::vector<Vec3f> next(m);
     std::vector<float> radius(m);
-    double max_scale = *std::max_element(scale.begin(), scale.end());
-    for (int iter = 0; iter < options.particle_iterations; ++iter) {
+    // With fixed input samples, the grid holds the particles followed by the samples.
+    std::vector<Vec3f> all;
+    if (params.fixed_input) all.resize(m + n);
+    const double max_scale = *std::max_element(scale_.begin(), scale_.end());
+    for (int iter = 0; iter < params.iterations; ++iter) {
         // Radius of each particle from its closest original point.
         tbb::parallel_for(tbb::blocked_range<std::size_t>(0, m, 1024), [&](const auto& range) {
             for (std::size_t p = range.begin(); p != range.end(); ++p) {
                 home[p] = tree.Nearest(positions[p]).index;
-                radius[p] = static_cast<float>(r0 * scale[home[p]]);
+                radius[p] = static_cast<float>(r0 * scale_[home[p]]);
             }
         });
-        const UniformGrid grid(positions, static_cast<float>(r0 * max_scale));
+        if (params.fixed_input) {
+            std::copy(positions.begin(), positions.end(), all.begin());
+            std::copy(points.begin(), points.end(), all.begin() + static_cast<std::ptrdiff_t>(m));
+        }
+        const UniformGrid grid(params.fixed_input ? std::span<const Vec3f>(all) : std::span<const Vec3f>(positions),
+                               static_cast<float>(r0 * max_scale));
         // Linear repulsion (eq. 2.2, 2.3), then back onto the tangent plane of the closest
         // original point (2.3.3). Jacobi update: every particle reads the previous positions.
         tbb::parallel_for(tbb::blocked_range<std::size_t>(0, m, 512), [&](const auto& range) {
@@ -119,17 +142,17 @@ void ParticleSimulation(const PointCloud& input, std::span<const Vec3f> normals,
                 // would drift along it. Keep them within the 6-neighbour radius of the closest
                 // original point.
                 const Vec3f off = moved - points[q];
-                const float reach = std::min(density.radius[q], 2.0f * median_radius), len_off = off.norm();
+                const float reach = std::min(reach_radius_[q], 2.0f * median_radius_), len_off = off.norm();
                 if (len_off > reach) moved = points[q] + off * (reach / len_off);
                 next[p] = moved;
             }
         });
         positions.swap(next);
-        progress.Advance(0.85 / std::max(1, options.particle_iterations));
+        progress.Advance(0.85 / std::max(1, params.iterations));
     }
 
     // Final MLS projection (2.3.3); normals oriented like the closest original normal.
-    const MlsSurface mls(input, tree);
+    const MlsSurface mls(input_, tree);
     const MlsSurface::Batch batch = mls.ProjectAll(positions);
     out_normals.resize(m);
     for (std::size_t p = 0; p < m; ++p) {
@@ -145,4 +168,4 @@ void ParticleSimulation(const PointCloud& input, std::span<const Vec3f> normals,
     progress.Advance(0.1);
 }
 
-}  // namespace surfel::detail
+}  // namespace surfel

@@ -1,0 +1,83 @@
+#pragma once
+/// \file
+/// The particle engine (course notes, Pauly 2.3, after Turk 1992) shared by particle
+/// simplification and resampling: particles spread over the sampled surface by density, linear
+/// repulsion within radius r on a dynamic grid, kept on the surface by projection onto the
+/// tangent plane of the closest original point, and a final MLS projection.
+
+#include <cstdint>
+#include <memory>
+#include <random>
+#include <span>
+#include <vector>
+
+#include "surfel/base/point_cloud.h"
+#include "surfel/base/progress.h"
+
+namespace surfel {
+
+class KdTree;
+
+namespace detail {
+
+/// Portable uniform numbers from mt19937_64 (whose output sequence the standard fixes).
+class Random {
+public:
+    explicit Random(std::uint64_t seed) : engine_(seed) {}
+    double Uniform() { return static_cast<double>(engine_() >> 11) * (1.0 / 9007199254740992.0); }
+    std::size_t Index(std::size_t n) { return static_cast<std::size_t>(Uniform() * static_cast<double>(n)) % n; }
+
+private:
+    std::mt19937_64 engine_;
+};
+
+}  // namespace detail
+
+/// One run of the particle engine.
+struct ParticleParams {
+    std::size_t count = 0;    ///< m, the particles that move (>= 1).
+    std::uint64_t seed = 1;   ///< Seeds the spreading (2.3.1) and its tangential jitter.
+    int iterations = 40;      ///< Relaxation steps (2.3.2-2.3.3), >= 0.
+    /// The input samples act as particles that repel but never move (keep-input resampling):
+    /// the repulsion radius is then that of count + input size particles.
+    bool fixed_input = false;
+};
+
+/// A particle simulation prepared over one input cloud: its kd-tree, sampling density
+/// (notes 1.1.1, k = 6) and per-sample spreading weights. Run() may be called many times.
+class ParticleEngine {
+public:
+    /// `normals`: one oriented unit normal per input point. `variation`: sigma_n per point
+    /// (notes 1.2), used when `adaptive` (2.3.4: repulsion radius scaled by 1 / sigma_n relative
+    /// to the median, clamped to [1/2, 2]); may be empty otherwise. Needs at least 2 points.
+    ParticleEngine(const PointCloud& input, std::span<const Vec3f> normals, std::span<const float> variation,
+                   bool adaptive);
+    ~ParticleEngine();
+    ParticleEngine(const ParticleEngine&) = delete;
+    ParticleEngine& operator=(const ParticleEngine&) = delete;
+
+    /// Sum over the input of area / scale^2 (model units squared): the sampled surface's area
+    /// for the uniform engine (each sample stands for 1 / rho, capped at 4x the median).
+    double WeightedArea() const { return total_; }
+
+    /// Runs the simulation: `positions` and `normals` (MLS normals, oriented like the closest
+    /// input normal) of params.count particles. Deterministic for a seed, whatever the thread
+    /// count (Jacobi updates). Advances `progress` by 1 in all.
+    void Run(const ParticleParams& params, std::vector<Vec3f>& positions, std::vector<Vec3f>& normals,
+             ProgressTracker& progress) const;
+
+    /// The kd-tree over the input positions.
+    const KdTree& tree() const { return *tree_; }
+
+private:
+    const PointCloud& input_;
+    std::span<const Vec3f> normals_;
+    std::unique_ptr<KdTree> tree_;
+    std::vector<float> reach_radius_;  // r_i of the sampling density (distance to the 6th neighbour)
+    std::vector<double> scale_;        // repulsion radius scale per input point
+    std::vector<double> weight_;       // area / scale^2 per input point
+    double total_ = 0.0;
+    float median_radius_ = 0.0f;
+};
+
+}  // namespace surfel

@@ -1,0 +1,107 @@
+#pragma once
+/// \file
+/// Resampling of a point-sampled surface to a new count or spacing, up or down (course notes,
+/// Pauly 2.3: "particle simulation ... can also be used for up-sampling"): particles spread by
+/// density, repelled until even, kept on the surface and MLS-projected at the end. The output
+/// carries MLS normals oriented like the input's, colours and extra attributes interpolated
+/// from the original samples (which stay fixed, like the zombies of notes 3.2.3), and a splat
+/// radius per point.
+
+#include <array>
+#include <cstdint>
+#include <optional>
+#include <span>
+#include <string>
+#include <string_view>
+
+#include "surfel/base/point_cloud.h"
+#include "surfel/base/progress.h"
+#include "surfel/surface/surface_error.h"
+
+namespace surfel {
+
+enum class ResampleMethod {
+    kParticle,  ///< 2.3: particle simulation on the sampled surface, final MLS projection.
+};
+
+/// "particle".
+const char* ResampleMethodName(ResampleMethod method);
+/// Parses a method name; nullopt when unknown.
+std::optional<ResampleMethod> ParseResampleMethod(std::string_view name);
+/// Every method, in declaration order.
+inline constexpr std::array<ResampleMethod, 1> kResampleMethods = {ResampleMethod::kParticle};
+
+/// Limits of ResampleOptions, written once here; the CLI, the worker and the docs read them.
+inline constexpr std::size_t kMaxResampleTarget = 1000000000;  ///< Largest output count.
+inline constexpr int kMaxResampleIterations = 1000;            ///< Largest `iterations`.
+/// Smallest input that defines a surface: a sample and its 6 nearest neighbours, and one more.
+inline constexpr std::size_t kMinResampleInput = 8;
+
+struct ResampleOptions {
+    ResampleMethod method = ResampleMethod::kParticle;
+    /// Exact number of output points, 1..kMaxResampleTarget, above or below the input's size
+    /// (with keep_input: above it, the input's points included). 0 = use `spacing`.
+    std::size_t target = 0;
+    /// Target spacing in model units, > 0: the output gets the count whose hexagonal lattice on
+    /// the input's area (sum of 1 / rho, notes 1.1.1) has this nearest-neighbour distance
+    /// (area / (sqrt(3)/2 spacing^2) points); with `adaptive` it is the spacing where the
+    /// surface variation equals its median. 0 = use `target`. Exactly one of the two is given.
+    double spacing = 0.0;
+    /// Curvature-adaptive (2.3.4): repulsion radius scaled by 1 / sigma_n relative to the
+    /// median, clamped to [1/2, 2], so up to 16x the density where the surface bends most.
+    bool adaptive = false;
+    /// Keep every input point unchanged (with its attributes) and only add points: the input
+    /// points repel the new ones but never move. Needs a count above the input's size.
+    bool keep_input = false;
+    std::uint64_t seed = 1;   ///< Seeds the initial spreading (2.3.1); every value is valid.
+    /// Relaxation steps of the particle simulation, 0..kMaxResampleIterations.
+    int iterations = 40;
+    bool measure_error = true;          ///< Compute the surface error of the result (Delta_max, Delta_avg).
+    std::size_t error_samples = 20000;  ///< |Q| for the surface error (0 = every input point).
+
+    /// Throws Error(kInvalidArgument, "<field>: <what>") for the first bad field, named as in
+    /// the job spec: "method: unknown method 7", "target: give target or spacing, not both",
+    /// "target: give target or spacing", "target: must lie in 1..1e+09, got V",
+    /// "spacing: must be positive, got V", "iterations: must lie in 0..1000, got V". Options
+    /// only: counts that the input makes impossible are checked by Resample().
+    void Validate() const;
+};
+
+/// What a resampling achieved.
+struct ResampleReport {
+    std::string method;
+    bool adaptive = false;
+    bool keep_input = false;
+    std::size_t input_points = 0;
+    std::size_t output_points = 0;
+    int iterations = 0;            ///< Relaxation steps run.
+    double spacing_mean = 0.0;     ///< Mean nearest-neighbour distance of the output, model units.
+    /// Coefficient of variation (std. deviation / mean) of the output's nearest-neighbour
+    /// distances: 0 for a hexagonal lattice, about 0.52 for uniform random sampling.
+    double spacing_cv = 0.0;
+    double time_ms = 0.0;          ///< The algorithm alone (without the error measurement).
+    double error_time_ms = 0.0;    ///< Time spent measuring the surface error.
+    /// Delta_max / Delta_avg of the input's surface against the output's (notes 2.4, eq. 2.4-2.5).
+    std::optional<SurfaceError> error;
+    bool normals_estimated = false;  ///< The input had no normals; they were estimated.
+};
+
+struct ResampleResult {
+    /// Positions; unit normals oriented like the input's; a splat radius per point (the spacing
+    /// eta = r_6 sqrt(pi / 6) of the output's own sampling density, notes 1.1.1); colours and
+    /// every extra attribute when the input has them (types kept).
+    PointCloud cloud;
+    ResampleReport report;
+};
+
+/// Resamples `input` as `options` say. Throws Error(kInvalidArgument) for bad options
+/// (options.Validate()), for an input of fewer than kMinResampleInput points, a spacing whose
+/// count is 0 or above kMaxResampleTarget, and a keep_input count not above the input's size;
+/// Error(kCancelled) when `progress` asks to stop. The same input, options and seed give the
+/// same output whatever the thread count.
+ResampleResult Resample(const PointCloud& input, const ResampleOptions& options, const ProgressFn& progress = {});
+
+/// Nearest-neighbour distances of `points` (size >= 2): {mean, coefficient of variation}.
+std::array<double, 2> NearestNeighborSpacing(std::span<const Vec3f> points);
+
+}  // namespace surfel
