@@ -23,6 +23,8 @@ struct Flags {
     std::string data_dir = "surfel-data";
     std::size_t workers = 0;
     std::size_t max_queued = 256;
+    std::size_t ingest_threads = 2;
+    std::size_t ingest_queue = 64;
     double max_upload_mb = 2048;
     std::uint64_t max_points = 50'000'000;
     std::string metrics;
@@ -48,6 +50,16 @@ int main(int argc, char** argv) {
     app.add_option("--max-queued", f.max_queued, "Jobs waiting before Submit answers RESOURCE_EXHAUSTED")
         ->default_val(256)
         ->check(CLI::Range(1, 1000000));
+    app.add_option("--ingest-threads", f.ingest_threads,
+                   "Threads that parse finished uploads (and hash resumed ones), off gRPC's threads; each "
+                   "holds one upload's bytes and its parsed cloud in memory")
+        ->default_val(2)
+        ->check(CLI::Range(1, 256));
+    app.add_option("--ingest-queue", f.ingest_queue,
+                   "Uploads waiting for an ingest thread before Upload answers RESOURCE_EXHAUSTED "
+                   "(the bytes are kept: the client resumes)")
+        ->default_val(64)
+        ->check(CLI::Range(1, 100000));
     app.add_option("--max-upload-mb", f.max_upload_mb, "Largest upload in MiB")->default_val(2048)->check(CLI::PositiveNumber);
     app.add_option("--max-points", f.max_points, "Largest accepted point count")->default_val(50'000'000);
     app.add_option("--metrics", f.metrics, "Serve Prometheus metrics at http://ADDR/metrics, e.g. 127.0.0.1:9464");
@@ -92,7 +104,10 @@ int main(int argc, char** argv) {
         server::ServiceLimits limits;
         limits.max_upload_bytes = static_cast<std::uint64_t>(f.max_upload_mb * 1024 * 1024);
         limits.max_points = f.max_points;
-        server::SurfelService service(store, jobs, metrics, limits);
+        // Declared before the service and the server: it outlives both, and runs its queue dry
+        // while server->Shutdown waits for the upload calls its tasks finish.
+        server::Executor ingest(f.ingest_threads, f.ingest_queue);
+        server::SurfelService service(store, jobs, metrics, ingest, limits);
 
         grpc::EnableDefaultHealthCheckService(true);
         grpc::reflection::InitProtoReflectionServerBuilderPlugin();
@@ -108,8 +123,9 @@ int main(int argc, char** argv) {
         }
         server->GetHealthCheckService()->SetServingStatus("surfel.v1.Surfel", true);
         jobs.Start();
-        spdlog::info("surfel-server listening on {}:{} (data {}, {} workers{}{})", f.host, bound_port, f.data_dir,
-                     mo.workers ? mo.workers : std::thread::hardware_concurrency(),
+        spdlog::info("surfel-server listening on {}:{} (data {}, {} workers, {} ingest threads{}{})", f.host,
+                     bound_port, f.data_dir, mo.workers ? mo.workers : std::thread::hardware_concurrency(),
+                     ingest.threads(),
                      f.metrics.empty() ? "" : ", metrics on http://", f.metrics.empty() ? "" : f.metrics + "/metrics");
         std::printf("listening on %s:%d\n", f.host.c_str(), bound_port);
         std::fflush(stdout);

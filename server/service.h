@@ -2,12 +2,18 @@
 /// \file
 /// surfel.v1.Surfel on gRPC's callback API: uploads (resumable, hashed while written,
 /// validated by parsing), jobs through the JobManager, and streamed events and results.
+///
+/// One file per reactor (upload_reactor.cpp, watch_reactor.cpp, download_reactor.cpp), the unary
+/// handlers in unary_handlers.cpp. No reaction blocks: parsing and hashing uploaded files run on
+/// the ingest Executor. What stays on gRPC's threads is bounded and short: one chunk written or
+/// read (at most max_chunk_bytes / download_chunk_bytes) and indexed SQLite lookups and updates.
 
 #include <cstdint>
 #include <mutex>
 #include <set>
 #include <string>
 
+#include "executor.h"
 #include "metrics.h"
 #include "surfel/v1/surfel.grpc.pb.h"
 #include "surfel/worker/job_manager.h"
@@ -15,6 +21,7 @@
 
 namespace surfel::server {
 
+/// Per-call limits of the service.
 struct ServiceLimits {
     std::uint64_t max_upload_bytes = 2ull << 30;  ///< Larger uploads -> RESOURCE_EXHAUSTED.
     std::uint64_t max_points = 50'000'000;        ///< Clouds with more points -> RESOURCE_EXHAUSTED.
@@ -22,9 +29,12 @@ struct ServiceLimits {
     std::size_t download_chunk_bytes = 256 << 10; ///< Result chunks in Watch and Download.
 };
 
+/// The service. Every reference must outlive it; `ingest` must also outlive the grpc::Server that
+/// runs it (its tasks finish upload calls, and the server's Shutdown waits for those).
 class SurfelService final : public v1::Surfel::CallbackService {
 public:
-    SurfelService(worker::Store& store, worker::JobManager& jobs, Metrics& metrics, ServiceLimits limits);
+    SurfelService(worker::Store& store, worker::JobManager& jobs, Metrics& metrics, Executor& ingest,
+                  ServiceLimits limits);
 
     grpc::ServerReadReactor<v1::UploadRequest>* Upload(grpc::CallbackServerContext* ctx, v1::Cloud* response) override;
     grpc::ServerUnaryReactor* QueryUpload(grpc::CallbackServerContext* ctx, const v1::QueryUploadRequest* req,
@@ -46,10 +56,12 @@ public:
     grpc::ServerUnaryReactor* ListJobs(grpc::CallbackServerContext* ctx, const v1::ListJobsRequest* req,
                                        v1::ListJobsResponse* resp) override;
 
-    // Used by the reactors.
+    /// Used by the reactors.
     worker::Store& store() { return store_; }
     worker::JobManager& jobs() { return jobs_; }
     Metrics& metrics() { return metrics_; }
+    /// Where uploads are hashed (on resume) and parsed.
+    Executor& ingest() { return ingest_; }
     const ServiceLimits& limits() const { return limits_; }
     /// Claims an upload id for one call at a time; false when another call holds it.
     bool ClaimUpload(const std::string& id);
@@ -59,6 +71,7 @@ private:
     worker::Store& store_;
     worker::JobManager& jobs_;
     Metrics& metrics_;
+    Executor& ingest_;
     ServiceLimits limits_;
     std::mutex uploads_mutex_;
     std::set<std::string> active_uploads_;
