@@ -6,7 +6,7 @@
 #include <cstdio>
 #include <iostream>
 
-#include "surfel/io/ply.h"
+#include "surfel/io/cloud_io.h"
 
 namespace surfel::cli {
 

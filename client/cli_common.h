@@ -7,6 +7,7 @@
 #include <nlohmann/json.hpp>
 #include <string>
 
+#include "surfel/base/error.h"
 #include "surfel/base/point_cloud.h"
 #include "surfel/base/progress.h"
 
@@ -21,6 +22,18 @@ inline constexpr int kExitUsage = 2;
 struct UsageError : std::runtime_error {
     using std::runtime_error::runtime_error;
 };
+
+/// Runs `fn` (which checks a flag's value, e.g. a file extension) and turns an
+/// Error(kInvalidArgument) from it into a UsageError naming `flag`: exit 2, not 1.
+template <typename Fn>
+auto UsageOnBadValue(const std::string& flag, Fn&& fn) -> decltype(fn()) {
+    try {
+        return fn();
+    } catch (const Error& e) {
+        if (e.code() != ErrorCode::kInvalidArgument) throw;
+        throw UsageError(flag + ": " + e.what());
+    }
+}
 
 /// Options every job subcommand shares.
 struct CommonFlags {

@@ -3,7 +3,9 @@
 
 #include "cli_common.h"
 #include "surfel/base/shapes.h"
+#include "surfel/io/file_bytes.h"
 #include "surfel/io/ply.h"
+#include "surfel/io/xyz.h"
 
 namespace surfel::cli {
 namespace {

@@ -3,7 +3,7 @@
 
 #include "cli_common.h"
 #include "job_exec.h"
-#include "surfel/worker/job_runner.h"
+#include "surfel/worker/job_kind.h"
 #include "surfel/base/error.h"
 #include "surfel/io/image.h"
 #include "surfel/render/renderer.h"
@@ -51,22 +51,26 @@ Light ParseLight(const std::string& text) {
     return L;
 }
 
+// Defaults come from a default-constructed RenderOptions, ranges from core's named limits.
 struct RenderArgs {
+    RenderOptions defaults;
     std::string input, output, png;
-    int width = 512, height = 512;
+    int width = defaults.camera.width, height = defaults.camera.height;
     std::string eye, target, up, view = "0,0,1", background = "0,0,0";
-    double fovy = 40;
+    double fovy = defaults.camera.fovy_deg;
     std::vector<std::string> lights;
-    bool no_shadows = false, half = false;
-    int spp = 1, degree = 2, max_iterations = 20;
-    float h = 0, precision = 0;
+    bool no_shadows = !defaults.shadows, half = false;
+    int spp = defaults.samples_per_pixel, degree = defaults.surface.degree,
+        max_iterations = defaults.surface.max_iterations;
+    float h = defaults.surface.h, precision = defaults.surface.precision;
     CommonFlags flags;
     JobFlags job;
 };
 
 void RunRender(RenderArgs& a) {
-    const ImageFormat format = ImageFormatFromPath(a.output);  // reject a bad extension before the work
-    if (!a.png.empty()) ImageFormatFromPath(a.png);
+    // A bad extension is a usage error, found before any work.
+    const ImageFormat format = UsageOnBadValue("--output", [&] { return ImageFormatFromPath(a.output); });
+    if (!a.png.empty()) UsageOnBadValue("--png", [&] { return ImageFormatFromPath(a.png); });
     v1::JobSpec spec;
     v1::RenderJob& r = *spec.mutable_render();
     r.set_width(a.width);
@@ -94,7 +98,7 @@ void RunRender(RenderArgs& a) {
     r.set_format(format == ImageFormat::kPng ? v1::RenderJob::PNG
                  : a.half                    ? v1::RenderJob::EXR_HALF
                                              : v1::RenderJob::EXR);
-    nlohmann::json report = ExecuteJob(spec, a.input, a.output, a.flags, a.job, "render");
+    nlohmann::json report = ExecuteJob(spec, {a.input}, a.output, a.flags, a.job);
     if (!a.png.empty() && report.contains("output")) {  // the preview, from the written image
         WriteImage(ReadImage(a.output), a.png);
         report["png"] = a.png;
@@ -110,21 +114,21 @@ void RegisterRenderCommands(CLI::App& app) {
     sub->add_option("input", a->input, "PLY or XYZ file")->required()->check(CLI::ExistingFile);
     sub->add_option("-o,--output", a->output, "EXR (R,G,B,A,Z,N.X,N.Y,N.Z) or PNG file")->required();
     sub->add_option("--png", a->png, "Also write an 8-bit sRGB PNG preview");
-    sub->add_option("--width", a->width, "Image width in pixels")->default_val(512)->check(CLI::Range(1, 16384));
-    sub->add_option("--height", a->height, "Image height in pixels")->default_val(512)->check(CLI::Range(1, 16384));
+    sub->add_option("--width", a->width, "Image width in pixels")->capture_default_str()->check(CLI::Range(1, kMaxImageSide));
+    sub->add_option("--height", a->height, "Image height in pixels")->capture_default_str()->check(CLI::Range(1, kMaxImageSide));
     sub->add_option("--eye", a->eye, "Camera position x,y,z (default: frames the bounding box)");
     sub->add_option("--target", a->target, "Point looked at x,y,z (default: the bounding box centre)");
     sub->add_option("--up", a->up, "Up direction x,y,z")->default_str("0,1,0");
     sub->add_option("--view", a->view, "Direction from the target to the default eye")->default_val("0,0,1");
-    sub->add_option("--fovy", a->fovy, "Vertical field of view in degrees")->default_val(40.0)->check(CLI::Range(1.0, 179.0));
+    sub->add_option("--fovy", a->fovy, "Vertical field of view in degrees")->capture_default_str()->check(CLI::Range(kMinFovyDeg, kMaxFovyDeg));
     sub->add_option("--light", a->lights, "dir:x,y,z[:intensity] (direction the light travels) or point:x,y,z[:intensity]; repeatable");
     sub->add_flag("--no-shadows", a->no_shadows, "Skip shadow rays");
-    sub->add_option("--spp", a->spp, "Stratified samples per pixel")->default_val(1)->check(CLI::Range(1, 1024));
+    sub->add_option("--spp", a->spp, "Stratified samples per pixel")->capture_default_str()->check(CLI::Range(1, kMaxSamplesPerPixel));
     sub->add_option("--background", a->background, "Background colour r,g,b (linear)")->default_val("0,0,0");
-    sub->add_option("--h", a->h, "Gaussian scale h (0 = 2 x median sample spacing)")->default_val(0.0f)->check(CLI::NonNegativeNumber);
-    sub->add_option("--precision", a->precision, "Convergence |c| < precision (0 = 1e-3 h)")->default_val(0.0f)->check(CLI::NonNegativeNumber);
-    sub->add_option("--degree", a->degree, "Local polynomial degree")->default_val(2)->check(CLI::Range(0, 2));
-    sub->add_option("--max-iterations", a->max_iterations, "Iterations per ball")->default_val(20)->check(CLI::Range(1, 1000));
+    sub->add_option("--h", a->h, "Gaussian scale h (0 = 2 x median sample spacing)")->capture_default_str()->check(CLI::NonNegativeNumber);
+    sub->add_option("--precision", a->precision, "Convergence |c| < precision (0 = 1e-3 h)")->capture_default_str()->check(CLI::NonNegativeNumber);
+    sub->add_option("--degree", a->degree, "Local polynomial degree (0, 1, 2)")->capture_default_str()->check(CLI::Range(0, 2));
+    sub->add_option("--max-iterations", a->max_iterations, "Iterations per ball")->capture_default_str()->check(CLI::Range(1, kMaxSurfaceIterations));
     sub->add_flag("--half", a->half, "Write EXR channels as 16-bit half floats");
     AddCommonFlags(sub, &a->flags);
     AddJobFlags(sub, &a->job);

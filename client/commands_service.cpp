@@ -4,7 +4,7 @@
 #include "cli_common.h"
 #include "job_exec.h"
 #include "service_client.h"
-#include "surfel/io/ply.h"
+#include "surfel/io/file_bytes.h"
 
 namespace surfel::cli {
 namespace {

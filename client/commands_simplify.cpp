@@ -1,24 +1,32 @@
 // surfel simplify
 #include "cli_common.h"
 #include "job_exec.h"
-#include "surfel/io/ply.h"
+#include "surfel/io/cloud_io.h"
 #include "surfel/base/error.h"
 #include "surfel/simplify/simplify.h"
 
 namespace surfel::cli {
 namespace {
 
+// Defaults come from a default-constructed SimplifyOptions, ranges from core's named limits.
 struct SimplifyArgs {
-    std::string input, output, method = "hierarchical";
-    std::uint64_t target = 0, seed = 1, max_size = 10;
-    double error = 0, max_variation = 0.01;
-    bool adaptive = false, no_error = false, ascii = false;
+    SimplifyOptions defaults;
+    std::string input, output, method = SimplifyMethodName(defaults.method);
+    std::uint64_t target = 0, seed = defaults.seed, max_size = defaults.max_cluster_size;
+    double error = 0, max_variation = defaults.max_variation;
+    bool adaptive = defaults.adaptive, no_error = !defaults.measure_error, ascii = false;
     CommonFlags flags;
     JobFlags job;
 };
 
+std::vector<std::string> MethodNames() {
+    std::vector<std::string> names;
+    for (const SimplifyMethod m : kSimplifyMethods) names.emplace_back(SimplifyMethodName(m));
+    return names;
+}
+
 void RunSimplify(SimplifyArgs& a) {
-    const bool xyz = FormatFromPath(a.output) == CloudFileFormat::kXyz;
+    const bool xyz = UsageOnBadValue("--output", [&] { return FormatFromPath(a.output); }) == CloudFileFormat::kXyz;
     v1::JobSpec spec;
     v1::SimplifyJob& s = *spec.mutable_simplify();
     std::string upper = a.method;
@@ -34,7 +42,7 @@ void RunSimplify(SimplifyArgs& a) {
     s.set_max_cluster_size(a.max_size);
     s.set_ascii(a.ascii);
     s.set_no_error_report(a.no_error);
-    nlohmann::json report = ExecuteJob(spec, a.input, a.output, a.flags, a.job, "simplify");
+    nlohmann::json report = ExecuteJob(spec, {a.input}, a.output, a.flags, a.job);
     if (xyz && report.contains("output")) WritePointCloud(ReadPointCloud(a.output), a.output);
     PrintReport(report, a.flags);
 }
@@ -47,8 +55,8 @@ void RegisterSimplifyCommands(CLI::App& app) {
     sub->add_option("input", a->input, "PLY or XYZ file")->required()->check(CLI::ExistingFile);
     sub->add_option("-o,--output", a->output, "Output file (.ply or .xyz): positions, normals, radius, colours")->required();
     sub->add_option("-m,--method", a->method, "hierarchical | incremental | iterative | particle | voxel")
-        ->default_val("hierarchical")
-        ->check(CLI::IsMember({"hierarchical", "incremental", "iterative", "particle", "voxel"}));
+        ->capture_default_str()
+        ->check(CLI::IsMember(MethodNames()));
     sub->add_option("-n,--target", a->target, "Exact number of output points")->check(CLI::PositiveNumber);
     sub->add_option("-e,--error", a->error,
                     "Error bound in model units instead of a count (iterative: RMS distance to the tangent planes; "
@@ -56,11 +64,12 @@ void RegisterSimplifyCommands(CLI::App& app) {
         ->check(CLI::PositiveNumber);
     sub->add_flag("--adaptive", a->adaptive, "Curvature-adaptive: more points where the surface bends");
     sub->add_option("--max-variation", a->max_variation, "sigma_max: largest surface variation of a cluster in adaptive clustering")
-        ->default_val(0.01)
-        ->check(CLI::Range(1e-9, 1.0 / 3.0));
+        ->capture_default_str()
+        ->check(CLI::Range(kMinMaxVariation, kMaxMaxVariation));
     sub->add_option("--max-size", a->max_size, "n_max, the largest cluster without a target (clustering)")
-        ->default_val(10);
-    sub->add_option("--seed", a->seed, "Seed (incremental seeds, particle spreading)")->default_val(1);
+        ->capture_default_str()
+        ->check(CLI::Range(std::uint64_t{1}, std::uint64_t{kMaxMaxClusterSize}));
+    sub->add_option("--seed", a->seed, "Seed (incremental seeds, particle spreading)")->capture_default_str();
     sub->add_flag("--no-error", a->no_error, "Skip the quality report (surface error)");
     sub->add_flag("--ascii", a->ascii, "Write ASCII PLY");
     AddCommonFlags(sub, &a->flags);

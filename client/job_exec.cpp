@@ -2,8 +2,8 @@
 
 #include "service_client.h"
 #include "surfel/base/error.h"
-#include "surfel/io/ply.h"
-#include "surfel/worker/job_runner.h"
+#include "surfel/io/file_bytes.h"
+#include "surfel/worker/job_kind.h"
 #include "surfel/worker/status.h"
 
 namespace surfel::cli {
@@ -13,15 +13,6 @@ client::ByteProgress ByteProgressBar(const std::string& label, const CommonFlags
     return [bar](std::uint64_t done, std::uint64_t total) { bar(total ? double(done) / double(total) : 1.0); };
 }
 
-namespace {
-
-void SetCloudId(v1::JobSpec& spec, const std::string& id) {
-    if (spec.has_render()) spec.mutable_render()->set_cloud_id(id);
-    if (spec.has_simplify()) spec.mutable_simplify()->set_cloud_id(id);
-}
-
-}  // namespace
-
 void AddJobFlags(CLI::App* sub, JobFlags* flags) {
     sub->add_option("--server", flags->server, "Run on a surfel-server at host:port instead of in-process")
         ->envname("SURFEL_SERVER");
@@ -30,11 +21,15 @@ void AddJobFlags(CLI::App* sub, JobFlags* flags) {
     sub->add_flag("--detach", flags->detach, "With --server: submit, print the job id and return");
 }
 
-nlohmann::json ExecuteJob(v1::JobSpec spec, const std::string& input, const std::string& output,
-                          const CommonFlags& flags, const JobFlags& job_flags, const std::string& label) {
+nlohmann::json ExecuteJob(v1::JobSpec spec, const std::vector<std::string>& inputs, const std::string& output,
+                          const CommonFlags& flags, const JobFlags& job_flags) {
+    const worker::JobKind& kind = worker::KindOf(spec);
+    SURFEL_CHECK(inputs.size() == kind.InputCount(), kind.Name() << " takes " << kind.InputCount() << " inputs");
+    const std::string label(kind.Name());
     if (job_flags.timeout_s > 0) spec.set_timeout_ms(static_cast<std::int64_t>(job_flags.timeout_s * 1000));
-    // Options first, before any work: a bad value is a usage error.
-    SetCloudId(spec, "local");
+    // Options first, before any work: a bad value is a usage error. In-process, a cloud's id is
+    // its file's path.
+    for (std::size_t i = 0; i < inputs.size(); ++i) kind.SetInput(spec, i, inputs[i]);
     try {
         worker::ValidateSpec(spec);
     } catch (const Error& e) {
@@ -43,9 +38,9 @@ nlohmann::json ExecuteJob(v1::JobSpec spec, const std::string& input, const std:
     if (job_flags.detach && job_flags.server.empty()) throw UsageError("--detach needs --server");
 
     if (job_flags.server.empty()) {
-        const PointCloud cloud = LoadCloud(input);
-        const worker::JobOutput out =
-            worker::RunJob(spec, [&](const std::string&) { return cloud; }, MakeProgressBar(label, flags));
+        const worker::JobOutput out = worker::RunJob(
+            spec, [](const std::string& path) { return std::make_shared<const PointCloud>(LoadCloud(path)); },
+            MakeProgressBar(label, flags));
         WriteFileBytes(output, out.bytes);
         nlohmann::json report = out.report;
         report["output"] = output;
@@ -53,12 +48,18 @@ nlohmann::json ExecuteJob(v1::JobSpec spec, const std::string& input, const std:
     }
 
     client::ServiceClient client(job_flags.server);
-    const v1::Cloud cloud = client.UploadFile(input, ByteProgressBar("upload", flags));
-    SetCloudId(spec, cloud.id());
+    std::vector<std::string> cloud_ids;
+    for (std::size_t i = 0; i < inputs.size(); ++i) {
+        cloud_ids.push_back(client.UploadFile(inputs[i], ByteProgressBar("upload", flags)).id());
+        kind.SetInput(spec, i, cloud_ids.back());
+    }
+    // One input: "cloud_id" as before; several: "cloud_ids" in the kind's order.
+    const nlohmann::json cloud_json = cloud_ids.size() == 1 ? nlohmann::json(cloud_ids[0]) : nlohmann::json(cloud_ids);
+    const char* cloud_key = cloud_ids.size() == 1 ? "cloud_id" : "cloud_ids";
     const v1::Job job = client.Submit(spec);
     if (job_flags.detach)
         return {{"job_id", job.id()}, {"state", v1::JobState_Name(job.state())}, {"reused", job.reused()},
-                {"cloud_id", cloud.id()}, {"server", job_flags.server}};
+                {cloud_key, cloud_json}, {"server", job_flags.server}};
     const ProgressFn bar = MakeProgressBar(label, flags);
     const client::WatchOutcome done = client.Watch(
         job.id(), /*include_result=*/true, /*cancel_on_disconnect=*/true,
@@ -73,7 +74,7 @@ nlohmann::json ExecuteJob(v1::JobSpec spec, const std::string& input, const std:
     nlohmann::json report = nlohmann::json::parse(done.result.report_json());
     report["output"] = output;
     report["job_id"] = job.id();
-    report["cloud_id"] = cloud.id();
+    report[cloud_key] = cloud_json;
     report["reused"] = job.reused();
     report["server"] = job_flags.server;
     return report;

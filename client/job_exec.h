@@ -1,12 +1,13 @@
 #pragma once
 /// \file
 /// One path for every job subcommand: run a surfel.v1.JobSpec in-process through the worker's
-/// RunJob (the embedded default), or through a server with --server host:port (upload if
+/// job-kind table (the embedded default), or through a server with --server host:port (upload if
 /// needed, submit, watch with progress, receive the result). Both write the result file and
 /// return the job's JSON report.
 
 #include <nlohmann/json.hpp>
 #include <string>
+#include <vector>
 
 #include "cli_common.h"
 #include "service_client.h"
@@ -27,10 +28,12 @@ client::ByteProgress ByteProgressBar(const std::string& label, const CommonFlags
 /// Adds --server, --timeout and --detach.
 void AddJobFlags(CLI::App* sub, JobFlags* flags);
 
-/// Runs `spec` (whose cloud_id is filled in here) on the cloud in `input`, writes the result to
-/// `output` and returns the report (with "output", and "job_id"/"server" when remote).
-/// Invalid options throw UsageError; other failures surfel::Error or client::RpcError.
-nlohmann::json ExecuteJob(v1::JobSpec spec, const std::string& input, const std::string& output,
-                          const CommonFlags& flags, const JobFlags& job_flags, const std::string& label);
+/// Runs `spec` on the clouds in `inputs` (one file per input of its kind, in the kind's order;
+/// their cloud ids are filled in here: in-process each id is the file's path, with --server the
+/// id of its upload), writes the result to `output` and returns the report (with "output", and
+/// "job_id"/"server" when remote). Invalid options throw UsageError; other failures
+/// surfel::Error or client::RpcError.
+nlohmann::json ExecuteJob(v1::JobSpec spec, const std::vector<std::string>& inputs, const std::string& output,
+                          const CommonFlags& flags, const JobFlags& job_flags);
 
 }  // namespace surfel::cli

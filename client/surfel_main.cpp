@@ -4,6 +4,7 @@
 
 #include "cli_common.h"
 #include "surfel/base/error.h"
+#include "surfel/worker/job_kind.h"
 
 int main(int argc, char** argv) {
     using namespace surfel::cli;
@@ -14,7 +15,8 @@ int main(int argc, char** argv) {
     app.footer("Exit codes: 0 success, 2 usage error, 1 failure (the message is on stderr).\n"
                "Every job subcommand takes --json and then prints one JSON object with at least\n"
                "`points` and `time_ms` (the algorithm alone, file I/O excluded).\n"
-               "Jobs (render, simplify) run in-process, or on a surfel-server with --server host:port\n"
+               "Jobs (" + surfel::worker::JobKindNames() +
+               ") run in-process, or on a surfel-server with --server host:port\n"
                "(or SURFEL_SERVER=host:port); upload, jobs, job, cancel and download talk to a server.\n"
                "Run `surfel <command> --help` for a command's options and an example.");
     RegisterIoCommands(app);
@@ -22,6 +24,20 @@ int main(int argc, char** argv) {
     RegisterRenderCommands(app);
     RegisterSimplifyCommands(app);
     RegisterServiceCommands(app);
+    // An unknown command word: name it (CLI11 would only say that a subcommand is required).
+    if (argc > 1 && argv[1][0] != '-') {
+        std::string commands;
+        bool known = false;
+        for (const CLI::App* sub : app.get_subcommands({})) {
+            known = known || sub->get_name() == argv[1];
+            commands += (commands.empty() ? "" : ", ") + sub->get_name();
+        }
+        if (!known) {
+            std::cerr << "surfel: unknown command '" << argv[1] << "' (commands: " << commands << ")\n"
+                      << "Run `surfel --help` for what each does.\n";
+            return kExitUsage;
+        }
+    }
     try {
         app.parse(argc, argv);
     } catch (const CLI::ParseError& e) {

@@ -13,6 +13,7 @@
 #include "surfel/base/shapes.h"
 #include "surfel/io/image.h"
 #include "surfel/io/ply.h"
+#include "surfel/io/file_bytes.h"
 
 namespace surfel {
 namespace {

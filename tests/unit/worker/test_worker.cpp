@@ -3,13 +3,16 @@
 #include <chrono>
 #include <condition_variable>
 #include <filesystem>
+#include <mutex>
+#include <set>
 #include <thread>
 
 #include "surfel/base/error.h"
 #include "surfel/base/shapes.h"
 #include "surfel/io/ply.h"
+#include "surfel/io/file_bytes.h"
+#include "surfel/worker/job_kind.h"
 #include "surfel/worker/job_manager.h"
-#include "surfel/worker/job_runner.h"
 #include "surfel/worker/status.h"
 #include "surfel/worker/store.h"
 
@@ -49,43 +52,7 @@ TEST(Sha256, KnownVectors) {
     EXPECT_EQ(h.FinishHex(), Sha256Hex("abc"));
 }
 
-std::string ValidationMessage(const v1::JobSpec& spec) {
-    try {
-        ValidateSpec(spec);
-    } catch (const Error& e) {
-        EXPECT_EQ(e.code(), ErrorCode::kInvalidArgument);
-        return e.what();
-    }
-    return "";
-}
-
-TEST(JobRunner, ValidationNamesTheField) {
-    v1::JobSpec spec;
-    EXPECT_EQ(ValidationMessage(spec), "spec: no job given (render or simplify)");
-    spec.mutable_render()->set_cloud_id("c");
-    EXPECT_EQ(ValidationMessage(spec), "");
-    spec.mutable_render()->set_width(20000);
-    EXPECT_EQ(ValidationMessage(spec), "render.width: must lie in 1..16384, got 20000");
-    spec.mutable_render()->set_width(10);
-    spec.mutable_render()->set_samples_per_pixel(5000);
-    EXPECT_EQ(ValidationMessage(spec), "render.samples_per_pixel: must lie in 1..1024, got 5000");
-    spec.mutable_render()->set_samples_per_pixel(4);
-    spec.mutable_render()->add_lights()->set_kind(v1::Light::DIRECTIONAL);
-    EXPECT_EQ(ValidationMessage(spec), "render.lights[0].vector: a directional light needs a non-zero direction");
-
-    v1::JobSpec s;
-    s.mutable_simplify()->set_cloud_id("c");
-    s.mutable_simplify()->set_method(v1::SimplifyJob::PARTICLE);
-    EXPECT_EQ(ValidationMessage(s), "simplify.target: is required for this method");
-    s.mutable_simplify()->set_error(0.1);
-    EXPECT_EQ(ValidationMessage(s), "simplify.error: this method takes a target, not an error bound");
-    s.mutable_simplify()->set_target(10);
-    EXPECT_EQ(ValidationMessage(s), "simplify: give target or error, not both");
-    s.mutable_simplify()->clear_cloud_id();
-    EXPECT_EQ(ValidationMessage(s), "simplify.cloud_id: is required");
-}
-
-TEST(JobRunner, KeyIgnoresTheTimeoutOnly) {
+TEST(JobManager, KeyIgnoresTheTimeoutOnly) {
     v1::JobSpec a;
     a.mutable_simplify()->set_cloud_id("c");
     a.mutable_simplify()->set_target(5);
@@ -94,24 +61,6 @@ TEST(JobRunner, KeyIgnoresTheTimeoutOnly) {
     EXPECT_EQ(JobKey(a), JobKey(b));
     b.mutable_simplify()->set_target(6);
     EXPECT_NE(JobKey(a), JobKey(b));
-}
-
-TEST(JobRunner, SimplifyProducesAPlyWithTheTargetCount) {
-    ShapeOptions o;
-    o.points = 5000;
-    const PointCloud sphere = SampleShape(Shape::kSphere, o);
-    v1::JobSpec spec;
-    spec.mutable_simplify()->set_cloud_id("sphere");
-    spec.mutable_simplify()->set_target(400);
-    const JobOutput out = RunJob(spec, [&](const std::string& id) {
-        EXPECT_EQ(id, "sphere");
-        return sphere;
-    });
-    EXPECT_EQ(out.media_type, "application/ply");
-    const PointCloud result = ParsePly(out.bytes, "result");
-    EXPECT_EQ(result.size(), 400u);
-    EXPECT_EQ(out.report["points"], 400);
-    EXPECT_TRUE(out.report.contains("error"));
 }
 
 // ---- JobManager on a real store in a temp directory.
@@ -175,6 +124,30 @@ TEST_F(ManagerTest, RunsAJobAndStoresItsResult) {
     EXPECT_EQ(again.state(), v1::SUCCEEDED);
 }
 
+TEST_F(ManagerTest, ProgressEventsCarryTheKindsStageAndCloudsAreShared) {
+    JobManager m(*store_, {});  // subscribed before it starts: every event is seen
+    const v1::Job job = m.Submit(Simplify(200));
+    EXPECT_EQ(job.type(), "simplify");
+    std::mutex mutex;
+    std::set<std::string> stages;
+    std::uint64_t token = 0;
+    ASSERT_TRUE(m.Subscribe(
+        job.id(),
+        [&](const v1::JobEvent& e) {
+            std::lock_guard lock(mutex);
+            if (e.has_running()) stages.insert(e.running().stage());
+        },
+        &token));
+    m.Start();
+    ASSERT_EQ(WaitFinal(m, job.id()).state(), v1::SUCCEEDED);
+    m.Unsubscribe(job.id(), token);
+    std::lock_guard lock(mutex);
+    EXPECT_TRUE(stages.count("loading"));
+    EXPECT_TRUE(stages.count(std::string(KindOf(job.spec()).Stage()))) << "stage from the job-kind table";
+    // The manager hands out its cached cloud itself, never a copy.
+    EXPECT_EQ(m.LoadCloud(cloud_id_).get(), m.LoadCloud(cloud_id_).get());
+}
+
 TEST_F(ManagerTest, UnknownCloudIsNotFoundAndFullQueueIsResourceExhausted) {
     ManagerOptions o;
     o.max_queued = 2;
@@ -186,6 +159,7 @@ TEST_F(ManagerTest, UnknownCloudIsNotFoundAndFullQueueIsResourceExhausted) {
         FAIL();
     } catch (const Error& e) {
         EXPECT_EQ(e.code(), ErrorCode::kNotFound);
+        EXPECT_EQ(std::string(e.what()), "simplify.cloud_id: cloud nope not found (upload it first)");
     }
     m.Submit(Simplify(10));
     m.Submit(Simplify(11));

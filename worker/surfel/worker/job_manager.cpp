@@ -9,16 +9,16 @@
 #include <random>
 
 #include "surfel/base/error.h"
-#include "surfel/io/ply.h"
-#include "surfel/worker/job_runner.h"
+#include "surfel/io/cloud_io.h"
+#include "surfel/io/file_bytes.h"
+#include "surfel/worker/job_kind.h"
+#include "surfel/worker/job_state.h"
 #include "surfel/worker/status.h"
 
 namespace surfel::worker {
 namespace {
 
 using Clock = std::chrono::steady_clock;
-
-bool IsFinal(v1::JobState s) { return s == v1::SUCCEEDED || s == v1::FAILED || s == v1::CANCELLED; }
 
 std::string NewJobId() {
     static std::mutex mutex;
@@ -121,8 +121,10 @@ void JobManager::NotifyQueuePositions() {
 
 v1::Job JobManager::Submit(const v1::JobSpec& spec) {
     ValidateSpec(spec);
-    for (const std::string& id : JobCloudIds(spec))
-        if (!store_.FindCloud(id)) throw Error(ErrorCode::kNotFound, "cloud " + id + " not found (upload it first)");
+    const JobKind& kind = KindOf(spec);
+    for (const CloudInput& input : kind.Inputs(spec))
+        if (!store_.FindCloud(input.id))
+            throw Error(ErrorCode::kNotFound, input.field + ": cloud " + input.id + " not found (upload it first)");
     const std::string key = JobKey(spec);
     std::lock_guard lock(mutex_);
     if (stopping_) throw Error(ErrorCode::kUnavailable, "the server is shutting down");
@@ -137,7 +139,7 @@ v1::Job JobManager::Submit(const v1::JobSpec& spec) {
                     "job queue is full (" + std::to_string(queue_.size()) + " jobs waiting); retry later");
     v1::Job job;
     job.set_id(NewJobId());
-    job.set_type(JobType(spec));
+    job.set_type(std::string(kind.Name()));
     *job.mutable_spec() = spec;
     job.set_created_unix_ms(NowUnixMs());
     job.set_state(v1::QUEUED);
@@ -278,7 +280,7 @@ void JobManager::Execute(const std::string& id) {
         Notify(id, e);
     }
     spdlog::info("job {}: {} running", id, run->job.type());
-    const std::string stage = run->job.type() == "render" ? "rendering" : "simplifying";
+    const std::string stage(KindOf(run->job.spec()).Stage());
     const auto started = Clock::now();
     auto progress = [&](double fraction) {
         if (run->cancel || Clock::now() > run->deadline) return false;
@@ -295,14 +297,8 @@ void JobManager::Execute(const std::string& id) {
     v1::Job done;
     bool requeued = false;
     try {
-        std::vector<std::shared_ptr<const PointCloud>> keep;
-        const JobOutput out = RunJob(
-            run->job.spec(),
-            [&](const std::string& cloud_id) {
-                keep.push_back(LoadCloud(cloud_id));
-                return *keep.back();
-            },
-            progress);
+        const JobOutput out =
+            RunJob(run->job.spec(), [&](const std::string& cloud_id) { return LoadCloud(cloud_id); }, progress);
         WriteFileBytes(store_.ResultPath(id), out.bytes);  // atomic: complete before it is announced
         std::lock_guard lock(mutex_);
         done = run->job;

@@ -1,7 +1,7 @@
 #pragma once
 /// \file
 /// The job queue and worker pool: jobs are persisted in the Store before Submit returns, run on
-/// N worker threads through RunJob, report progress to subscribers, and can be cancelled (the
+/// N worker threads through RunJob (job_kind.h), report progress to subscribers, and can be cancelled (the
 /// core's progress hook returns false within one progress step). After a restart, jobs left
 /// queued or running are queued again.
 

@@ -1,0 +1,123 @@
+// The `surfel` CLI as a user runs it: every subcommand with a good call, an unknown flag, a
+// missing input file and a malformed one, each with its exit code (0 ok, 2 usage, 1 failure)
+// and the words its message must contain.
+#include <gtest/gtest.h>
+#include <sys/wait.h>
+
+#include <cstdio>
+#include <filesystem>
+#include <regex>
+
+#include "surfel/base/shapes.h"
+#include "surfel/io/file_bytes.h"
+#include "surfel/io/ply.h"
+
+namespace surfel {
+namespace {
+
+namespace fs = std::filesystem;
+
+struct CliCase {
+    std::string name;     ///< test name: <subcommand>_<situation>
+    std::string args;     ///< after `surfel`; {dir} is the test folder
+    int exit_code;
+    std::string message;  ///< must appear in stdout + stderr ("" = anything)
+};
+
+std::ostream& operator<<(std::ostream& os, const CliCase& c) { return os << c.name; }
+
+// A PLY whose second vertex lacks its z (line 9 of the file).
+constexpr const char* kMalformedPly =
+    "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\n"
+    "end_header\n0 0 0\n1 1\n";
+
+const CliCase kCases[] = {
+    // One good call, an unknown flag, a missing file, a malformed file, per subcommand.
+    {"render_ok", "render {dir}/sphere.ply -o {dir}/r.exr --width 24 --height 16 --json", 0, "\"points\":"},
+    {"render_unknown_flag", "render {dir}/sphere.ply -o {dir}/r.exr --nope", 2, "--nope"},
+    {"render_missing_file", "render {dir}/none.ply -o {dir}/r.exr", 2, "none.ply"},
+    {"render_malformed_file", "render {dir}/bad.ply -o {dir}/r.exr", 1, "bad.ply"},
+    {"render_bad_value", "render {dir}/sphere.ply -o {dir}/r.exr --width 0", 2, "--width"},
+    {"render_bad_extension", "render {dir}/sphere.ply -o {dir}/r.tiff", 2, "r.tiff"},
+    {"simplify_ok", "simplify {dir}/sphere.ply -o {dir}/s.ply --target 100 --json", 0, "\"points\":100"},
+    {"simplify_unknown_flag", "simplify {dir}/sphere.ply -o {dir}/s.ply --nope", 2, "--nope"},
+    {"simplify_missing_file", "simplify {dir}/none.ply -o {dir}/s.ply --target 10", 2, "none.ply"},
+    {"simplify_malformed_file", "simplify {dir}/bad.ply -o {dir}/s.ply --target 1", 1, "bad.ply"},
+    {"simplify_bad_extension", "simplify {dir}/sphere.ply -o {dir}/s.obj --target 10", 2, "s.obj"},
+    {"simplify_no_bound", "simplify {dir}/sphere.ply -o {dir}/s.ply --method voxel", 2,
+     "simplify.target: is required for this method"},
+    {"simplify_target_too_big", "simplify {dir}/sphere.ply -o {dir}/s.ply --target 100000", 1, "100000"},
+    {"normals_ok", "normals {dir}/sphere.ply -o {dir}/n.ply --json", 0, "\"points\":"},
+    {"normals_unknown_flag", "normals {dir}/sphere.ply -o {dir}/n.ply --nope", 2, "--nope"},
+    {"normals_missing_file", "normals {dir}/none.ply -o {dir}/n.ply", 2, "none.ply"},
+    {"normals_malformed_file", "normals {dir}/bad.ply -o {dir}/n.ply", 1, "bad.ply"},
+    {"project_ok", "project {dir}/sphere.ply -o {dir}/p.ply --json", 0, "\"points\":"},
+    {"project_unknown_flag", "project {dir}/sphere.ply -o {dir}/p.ply --nope", 2, "--nope"},
+    {"project_missing_file", "project {dir}/none.ply -o {dir}/p.ply", 2, "none.ply"},
+    {"project_malformed_file", "project {dir}/bad.ply -o {dir}/p.ply", 1, "bad.ply"},
+    {"error_ok", "error {dir}/sphere.ply {dir}/sphere.ply --json", 0, "\"max\":"},
+    {"error_unknown_flag", "error {dir}/sphere.ply {dir}/sphere.ply --nope", 2, "--nope"},
+    {"error_missing_file", "error {dir}/sphere.ply {dir}/none.ply", 2, "none.ply"},
+    {"error_malformed_file", "error {dir}/sphere.ply {dir}/bad.ply", 1, "bad.ply"},
+    {"info_ok", "info {dir}/sphere.ply --json", 0, "\"points\":2000"},
+    {"info_unknown_flag", "info {dir}/sphere.ply --nope", 2, "--nope"},
+    {"info_missing_file", "info {dir}/none.ply", 2, "none.ply"},
+    {"info_malformed_file", "info {dir}/bad.ply", 1, "bad.ply"},
+    {"convert_ok", "convert {dir}/sphere.ply -o {dir}/c.xyz --json", 0, ""},
+    {"convert_unknown_flag", "convert {dir}/sphere.ply -o {dir}/c.xyz --nope", 2, "--nope"},
+    {"convert_missing_file", "convert {dir}/none.ply -o {dir}/c.xyz", 2, "none.ply"},
+    {"convert_malformed_file", "convert {dir}/bad.ply -o {dir}/c.xyz", 1, "bad.ply"},
+    {"sample_ok", "sample torus -n 300 -o {dir}/t.ply --json", 0, "\"points\":300"},
+    {"sample_unknown_flag", "sample torus -o {dir}/t.ply --nope", 2, "--nope"},
+    {"sample_unknown_shape", "sample teapot -o {dir}/t.ply", 2, "teapot"},
+    // Server commands without a server to talk to.
+    {"upload_no_server", "upload {dir}/sphere.ply --server 127.0.0.1:1", 1, "127.0.0.1:1"},
+    {"jobs_unknown_flag", "jobs --server 127.0.0.1:1 --nope", 2, "--nope"},
+    {"render_detach_without_server", "render {dir}/sphere.ply -o {dir}/r.exr --detach", 2, "--detach needs --server"},
+    // The tool itself.
+    {"no_subcommand", "", 2, ""},
+    {"unknown_subcommand", "frobnicate", 2, "unknown command 'frobnicate'"},
+    {"help", "--help", 0, "Exit codes"},
+};
+
+class Cli : public ::testing::TestWithParam<CliCase> {
+protected:
+    static void SetUpTestSuite() {
+        dir_ = fs::temp_directory_path() / ("surfel-cli-" + std::to_string(::getpid()));
+        fs::create_directories(dir_);
+        ShapeOptions o;
+        o.points = 2000;
+        o.normals = true;
+        WritePly(SampleShape(Shape::kSphere, o), (dir_ / "sphere.ply").string());
+        WriteFileBytes((dir_ / "bad.ply").string(), kMalformedPly);
+    }
+    static void TearDownTestSuite() { fs::remove_all(dir_); }
+    static fs::path dir_;
+};
+fs::path Cli::dir_;
+
+/// Runs `surfel args` with SURFEL_SERVER unset; returns the exit code and stdout + stderr.
+int RunSurfel(const std::string& args, std::string* output) {
+    const std::string command = "env -u SURFEL_SERVER " + std::string(SURFEL_BIN_DIR) + "/surfel " + args + " 2>&1";
+    FILE* pipe = popen(command.c_str(), "r");
+    char buf[4096];
+    while (std::size_t n = std::fread(buf, 1, sizeof buf, pipe)) output->append(buf, n);
+    const int status = pclose(pipe);
+    return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+}
+
+TEST_P(Cli, ExitCodeAndMessage) {
+    const CliCase& c = GetParam();
+    const std::string args = std::regex_replace(c.args, std::regex("\\{dir\\}"), dir_.string());
+    std::string output;
+    EXPECT_EQ(RunSurfel(args, &output), c.exit_code) << "surfel " << args << "\n" << output;
+    EXPECT_NE(output.find(c.message), std::string::npos) << "surfel " << args << "\n" << output;
+    if (c.exit_code != 0) EXPECT_LT(output.size(), 4000u) << "an error is a message, not a dump";
+}
+
+std::string CaseName(const ::testing::TestParamInfo<CliCase>& param) { return param.param.name; }
+
+INSTANTIATE_TEST_SUITE_P(Subcommands, Cli, ::testing::ValuesIn(kCases), CaseName);
+
+}  // namespace
+}  // namespace surfel
