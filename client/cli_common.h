@@ -63,6 +63,7 @@ void RegisterIoCommands(CLI::App& app);
 void RegisterSurfaceCommands(CLI::App& app);
 void RegisterRenderCommands(CLI::App& app);
 void RegisterSimplifyCommands(CLI::App& app);
+void RegisterResampleCommands(CLI::App& app);
 void RegisterServiceCommands(CLI::App& app);
 
 }  // namespace surfel::cli

@@ -23,6 +23,7 @@ int main(int argc, char** argv) {
     RegisterSurfaceCommands(app);
     RegisterRenderCommands(app);
     RegisterSimplifyCommands(app);
+    RegisterResampleCommands(app);
     RegisterServiceCommands(app);
     // An unknown command word: name it (CLI11 would only say that a subcommand is required).
     if (argc > 1 && argv[1][0] != '-') {

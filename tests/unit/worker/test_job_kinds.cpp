@@ -202,6 +202,40 @@ TEST(SimplifyJob, ValidationNamesTheField) {
     EXPECT_EQ(ValidationMessage(s), "simplify.cloud_id: is required");
 }
 
+TEST(ResampleJob, ValidationNamesTheField) {
+    v1::JobSpec s;
+    s.mutable_resample()->set_cloud_id("c");
+    EXPECT_EQ(ValidationMessage(s), "resample.target: give target or spacing");
+    s.mutable_resample()->set_target(100);
+    EXPECT_EQ(ValidationMessage(s), "");
+    s.mutable_resample()->set_spacing(0.1);
+    EXPECT_EQ(ValidationMessage(s), "resample.target: give target or spacing, not both");
+    s.mutable_resample()->set_target(0);
+    s.mutable_resample()->set_spacing(-1);
+    EXPECT_EQ(ValidationMessage(s), "resample.spacing: must be positive, got -1");
+    s.mutable_resample()->set_spacing(0.1);
+    s.mutable_resample()->set_iterations(5000);
+    EXPECT_EQ(ValidationMessage(s), "resample.iterations: must lie in 0..1000, got 5000");
+    s.mutable_resample()->set_iterations(0);  // = the default
+    s.mutable_resample()->set_method(static_cast<v1::ResampleJob::Method>(9));
+    EXPECT_EQ(ValidationMessage(s), "resample.method: unknown method 9");
+}
+
+TEST(ResampleJob, AnInputTooSmallForKeepInputNamesTheField) {
+    v1::JobSpec spec;
+    spec.mutable_resample()->set_cloud_id("sphere");
+    spec.mutable_resample()->set_target(100);
+    spec.mutable_resample()->set_keep_input(true);
+    try {
+        RunJob(spec, [](const std::string&) { return SmallSphere(); });
+        FAIL() << "keep_input with fewer points than the input must fail";
+    } catch (const Error& e) {
+        EXPECT_EQ(e.code(), ErrorCode::kInvalidArgument);
+        EXPECT_EQ(std::string(e.what()).rfind("resample.target: with keep_input must exceed the input's 2000 points", 0), 0u)
+            << e.what();
+    }
+}
+
 TEST(SimplifyJob, ProducesAPlyWithTheTargetCount) {
     ShapeOptions o;
     o.points = 5000;

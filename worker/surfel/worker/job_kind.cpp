@@ -15,6 +15,7 @@ const JobKind* FindJobKind(v1::JobSpec::JobCase job_case) {
     switch (job_case) {
         case v1::JobSpec::kRender: return &RenderKind();
         case v1::JobSpec::kSimplify: return &SimplifyKind();
+        case v1::JobSpec::kResample: return &ResampleKind();
         case v1::JobSpec::JOB_NOT_SET: return nullptr;
     }
     return nullptr;  // a value outside the enum (never produced by protobuf)
@@ -95,7 +96,10 @@ void WithFieldPrefix(const std::string& prefix, const std::function<void()>& fn)
     try {
         fn();
     } catch (const Error& e) {
-        if (e.code() != ErrorCode::kInvalidArgument) throw;
+        const std::string_view what = e.what();
+        // A message that names the job already ("simplify: the input cloud has no points") is
+        // left as it is.
+        if (e.code() != ErrorCode::kInvalidArgument || what.rfind(prefix + ":", 0) == 0) throw;
         throw Error(e.code(), prefix + "." + e.what());
     }
 }

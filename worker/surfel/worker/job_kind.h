@@ -101,7 +101,8 @@ v1::Vec3 ToProto(const Vec3d& v);
 Vec3d FromProto(const v1::Vec3& v);
 
 /// Runs `fn` and rethrows an Error(kInvalidArgument) from it with `prefix` + "." before its
-/// message: core Options name their fields, the adapter adds where they sit in the spec.
+/// message: core Options name their fields, the adapter adds where they sit in the spec
+/// ("width: ..." -> "render.width: ..."). A message that starts with `prefix` + ":" is kept.
 void WithFieldPrefix(const std::string& prefix, const std::function<void()>& fn);
 
 }  // namespace surfel::worker

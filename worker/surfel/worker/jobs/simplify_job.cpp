@@ -4,6 +4,7 @@
 #include "surfel/io/ply.h"
 #include "surfel/simplify/simplify.h"
 #include "surfel/worker/jobs/jobs.h"
+#include "surfel/worker/jobs/reports.h"
 
 namespace surfel::worker {
 namespace {
@@ -42,16 +43,7 @@ nlohmann::json SimplifyReportJson(const SimplifyReport& r) {
                         {"time_ms", r.time_ms},
                         {"peak_rss_mb", r.peak_rss_mb},
                         {"normals_estimated", r.normals_estimated}};
-    if (r.error) {
-        j["error"] = {{"max", r.error->max},
-                      {"avg", r.error->avg},
-                      {"max_relative", r.error->max_relative()},
-                      {"avg_relative", r.error->avg_relative()},
-                      {"avg_per_sample_relative", r.error->avg_per_sample_relative()},
-                      {"samples", r.error->samples},
-                      {"failed", r.error->failed},
-                      {"time_ms", r.error_time_ms}};
-    }
+    if (r.error) j["error"] = SurfaceErrorJson(*r.error, r.error_time_ms);
     return j;
 }
 
@@ -83,7 +75,8 @@ public:
 
     JobOutput Run(const v1::JobSpec& spec, const Clouds& clouds, const ProgressFn& progress) const override {
         const v1::SimplifyJob& job = spec.simplify();
-        const SimplifyResult r = Simplify(*clouds.at(0), ToSimplifyOptions(job), progress);
+        SimplifyResult r;
+        WithFieldPrefix("simplify", [&] { r = Simplify(*clouds.at(0), ToSimplifyOptions(job), progress); });
         PlyWriteOptions w;
         w.format = job.ascii() ? PlyFormat::kAscii : PlyFormat::kBinaryLittleEndian;
         w.comments.push_back(std::string("surfel simplify ") + r.report.method);

@@ -1,0 +1,106 @@
+// The resample job: particle resampling on the MLS surface (core/surfel/resample).
+
+#include "surfel/base/error.h"
+#include "surfel/io/ply.h"
+#include "surfel/resample/resample.h"
+#include "surfel/worker/jobs/jobs.h"
+#include "surfel/worker/jobs/reports.h"
+
+namespace surfel::worker {
+namespace {
+
+// ---- proto -> ResampleOptions ----------------------------------------------------------------
+// Proto3's "0 / unset means the default" is resolved here; every default and limit is core's.
+
+ResampleOptions ToResampleOptions(const v1::ResampleJob& job) {
+    const ResampleOptions defaults;
+    ResampleOptions o;
+    switch (job.method()) {
+        case v1::ResampleJob::METHOD_UNSPECIFIED: o.method = defaults.method; break;
+        case v1::ResampleJob::PARTICLE: o.method = ResampleMethod::kParticle; break;
+        default:
+            throw Error(ErrorCode::kInvalidArgument, "resample.method: unknown method " + std::to_string(job.method()));
+    }
+    o.target = job.target();
+    o.spacing = job.spacing();
+    o.adaptive = job.adaptive();
+    o.keep_input = job.keep_input();
+    if (job.seed()) o.seed = job.seed();
+    if (job.iterations()) o.iterations = job.iterations();
+    o.measure_error = !job.no_error_report();
+    return o;
+}
+
+nlohmann::json ResampleReportJson(const ResampleReport& r) {
+    nlohmann::json j = {{"points", r.output_points},
+                        {"input_points", r.input_points},
+                        {"method", r.method},
+                        {"adaptive", r.adaptive},
+                        {"keep_input", r.keep_input},
+                        {"iterations", r.iterations},
+                        {"spacing_mean", r.spacing_mean},
+                        {"spacing_cv", r.spacing_cv},
+                        {"time_ms", r.time_ms},
+                        {"normals_estimated", r.normals_estimated}};
+    if (r.error) j["error"] = SurfaceErrorJson(*r.error, r.error_time_ms);
+    return j;
+}
+
+// ---- The kind ---------------------------------------------------------------------------------
+
+class ResampleJobKind final : public JobKind {
+public:
+    v1::JobSpec::JobCase Case() const override { return v1::JobSpec::kResample; }
+    std::string_view Name() const override { return "resample"; }
+    std::string_view Stage() const override { return "resampling"; }
+    std::size_t InputCount() const override { return 1; }
+
+    std::vector<CloudInput> Inputs(const v1::JobSpec& spec) const override {
+        return {{"resample.cloud_id", spec.resample().cloud_id()}};
+    }
+    void SetInput(v1::JobSpec& spec, std::size_t index, const std::string& cloud_id) const override {
+        SURFEL_CHECK(index == 0, index);
+        spec.mutable_resample()->set_cloud_id(cloud_id);
+    }
+
+    void Validate(const v1::JobSpec& spec) const override {
+        const ResampleOptions options = ToResampleOptions(spec.resample());
+        WithFieldPrefix("resample", [&] { options.Validate(); });
+    }
+
+    std::pair<std::string, std::string> ResultType(const v1::JobSpec&) const override {
+        return {"application/ply", ".ply"};
+    }
+
+    JobOutput Run(const v1::JobSpec& spec, const Clouds& clouds, const ProgressFn& progress) const override {
+        const v1::ResampleJob& job = spec.resample();
+        ResampleResult r;
+        WithFieldPrefix("resample", [&] { r = Resample(*clouds.at(0), ToResampleOptions(job), progress); });
+        PlyWriteOptions w;
+        w.format = job.ascii() ? PlyFormat::kAscii : PlyFormat::kBinaryLittleEndian;
+        w.comments.push_back(std::string("surfel resample ") + r.report.method);
+        JobOutput out;
+        std::tie(out.media_type, out.extension) = ResultType(spec);
+        out.bytes = FormatPly(r.cloud, w);
+        out.report = ResampleReportJson(r.report);
+        out.points = r.cloud.size();
+        out.time_ms = r.report.time_ms;
+        return out;
+    }
+
+    v1::JobSpec Example() const override {
+        v1::JobSpec spec;
+        spec.mutable_resample()->set_target(600);
+        spec.mutable_resample()->set_iterations(10);
+        return spec;
+    }
+};
+
+}  // namespace
+
+const JobKind& ResampleKind() {
+    static const ResampleJobKind kind;
+    return kind;
+}
+
+}  // namespace surfel::worker
