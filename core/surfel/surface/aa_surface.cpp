@@ -185,8 +185,12 @@ bool AaSurface::CenterFit(std::uint32_t ball, Fit* out, AaCounters* counters) co
     CenterEntry& entry = impl_->centers[ball];
     const Vec3d center = impl_->cloud.positions[ball].cast<double>();
     // Every caller, the one that computes the entry included, reads the single-precision entry:
-    // the image must not depend on which ray (thread) reached the ball first.
-    auto unpack = [&](const CenterEntry& e) {
+    // the image must not depend on which ray (thread) reached the ball first. The entry is read
+    // through a volatile reference, so its floats are loaded from memory and widened: GCC 12
+    // (Debian 12's, from -O2) folds a vectorised (double)(float)x back to x, and the caller that
+    // had just filled `fresh` got some fields unrounded while the cache readers got them rounded
+    // (1 ulp in a few pixels, depending on which thread reached a ball first).
+    auto unpack = [&](const volatile CenterEntry& e) {
         out->frame.origin = center;
         out->frame.n = Vec3d(e.n[0], e.n[1], e.n[2]).normalized();
         out->frame.u = Vec3d(e.u[0], e.u[1], e.u[2]).normalized();

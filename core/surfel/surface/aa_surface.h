@@ -95,7 +95,9 @@ public:
     /// polynomial, then iterates support plane -> polynomial -> intersection until the constant
     /// term |c| < precision. Returns the hit with the smallest t in [tmin, tmax] found this way,
     /// or nullopt ("no surface here": no intersection in the ball, ill-defined normal, the
-    /// iterate left the ball, or no convergence). `dir` must be unit length.
+    /// iterate left the ball, or no convergence). `dir` must be unit length. Every call reads the
+    /// centre polynomial rounded to the cache's single precision, the call that fills the cache
+    /// included, so the result does not depend on the order (or thread) of the calls.
     ///
     /// `known_hit` is the t of a hit the ray already has (+inf when none). A ball whose
     /// centre-polynomial root lies less than kSameSheet * h in front of it is skipped: the
