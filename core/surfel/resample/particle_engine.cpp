@@ -59,6 +59,44 @@ ParticleEngine::ParticleEngine(const PointCloud& input, std::span<const Vec3f> n
 
 ParticleEngine::~ParticleEngine() = default;
 
+Vec3f ParticleEngine::OntoSurface(Vec3f moved) const {
+    const std::span<const Vec3f> points = input_.positions;
+    const std::uint32_t q = tree_->Nearest(moved).index;
+    const Vec3f& nq = normals_[q];
+    moved -= (moved - points[q]).dot(nq) * nq;
+    // Stay on the sampled surface: at an open boundary (a scan's edge, a hole) the tangent plane
+    // goes on where the samples stop, and particles pushed outward would drift along it. Keep
+    // them within the 6-neighbour radius of the closest original point.
+    const Vec3f off = moved - points[q];
+    const float reach = std::min(reach_radius_[q], 2.0f * median_radius_), len_off = off.norm();
+    if (len_off > reach) moved = points[q] + off * (reach / len_off);
+    return moved;
+}
+
+void ParticleEngine::Relax(std::vector<Vec3f>& positions, double radius, int iterations) const {
+    const std::size_t m = positions.size();
+    const float r = static_cast<float>(radius);
+    std::vector<Vec3f> next(m);
+    for (int iter = 0; iter < iterations; ++iter) {
+        const UniformGrid grid(positions, r);
+        tbb::parallel_for(tbb::blocked_range<std::size_t>(0, m, 512), [&](const auto& range) {
+            for (std::size_t p = range.begin(); p != range.end(); ++p) {
+                const Vec3f x = positions[p];
+                Vec3d force = Vec3d::Zero();
+                grid.ForEachWithin(x, r, [&](std::uint32_t j, const Vec3f& y, float d2) {
+                    if (j == p) return;
+                    force += ((r - std::sqrt(d2)) * (x - y)).cast<double>();
+                });
+                Vec3d step = force * (0.3 / r);  // as in Run
+                const double len = step.norm();
+                if (len > 0.5 * r) step *= 0.5 * r / len;
+                next[p] = OntoSurface(x + step.cast<float>());
+            }
+        });
+        positions.swap(next);
+    }
+}
+
 void ParticleEngine::Run(const ParticleParams& params, std::vector<Vec3f>& positions,
                          std::vector<Vec3f>& out_normals, ProgressTracker& progress) const {
     const std::span<const Vec3f> points = input_.positions;
@@ -133,18 +171,7 @@ void ParticleEngine::Run(const ParticleParams& params, std::vector<Vec3f>& posit
                 Vec3d step = force * (0.3 / r);
                 const double len = step.norm();
                 if (len > 0.5 * r) step *= 0.5 * r / len;
-                Vec3f moved = x + step.cast<float>();
-                const std::uint32_t q = tree.Nearest(moved).index;
-                const Vec3f& nq = normals[q];
-                moved -= (moved - points[q]).dot(nq) * nq;
-                // Stay on the sampled surface: at an open boundary (a scan's edge, a hole) the
-                // tangent plane goes on where the samples stop, and particles pushed outward
-                // would drift along it. Keep them within the 6-neighbour radius of the closest
-                // original point.
-                const Vec3f off = moved - points[q];
-                const float reach = std::min(reach_radius_[q], 2.0f * median_radius_), len_off = off.norm();
-                if (len_off > reach) moved = points[q] + off * (reach / len_off);
-                next[p] = moved;
+                next[p] = OntoSurface(x + step.cast<float>());
             }
         });
         positions.swap(next);

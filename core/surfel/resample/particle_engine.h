@@ -66,10 +66,20 @@ public:
     void Run(const ParticleParams& params, std::vector<Vec3f>& positions, std::vector<Vec3f>& normals,
              ProgressTracker& progress) const;
 
+    /// Relaxation filter of dynamic sampling (notes 3.2.3): `iterations` Jacobi steps of the
+    /// linear repulsion (eq. 2.2-2.3, as in Run) among `positions` within `radius` (model units,
+    /// > 0), each move put back onto the tangent plane of the closest input point and within its
+    /// reach. Deterministic whatever the thread count.
+    void Relax(std::vector<Vec3f>& positions, double radius, int iterations) const;
+
     /// The kd-tree over the input positions.
     const KdTree& tree() const { return *tree_; }
 
 private:
+    // A moved particle back onto the sampled surface (2.3.3): the tangent plane of the closest
+    // original point, within that point's reach.
+    Vec3f OntoSurface(Vec3f moved) const;
+
     const PointCloud& input_;
     std::span<const Vec3f> normals_;
     std::unique_ptr<KdTree> tree_;

@@ -20,15 +20,29 @@ namespace surfel {
 namespace {
 
 // Interpolation filter (notes 3.2.3): the attributes of a new sample from the original samples,
-// which never move (the notes' zombies). A Gaussian-weighted linear fit a(u, v) = c0 + c1 u + c2 v
+// which never move (the notes' zombies). A Gaussian-weighted linear fit a(u, v) = c0 + g . (u, v)
 // over the k nearest originals in the tangent plane at x, evaluated at x (c0): exact for
 // attributes linear along the surface, unlike a plain average, whose error grows with the
-// offset of the neighbours' weighted centroid. The weighted mean where the neighbours are
-// (nearly) collinear (kMinConditioning).
+// offset of the neighbours' weighted centroid. Written about that centroid ubar, the fit is
+// c0 = abar - g . ubar with C g = cov(u, a), C the weighted covariance of the neighbours' (u, v);
+// along an eigenvector of C whose eigenvalue is tiny (neighbours nearly on a line) the slope is
+// undetermined, so each eigenvalue is damped by kSlopeDamping * lambda_max (Tikhonov): the slope
+// fades smoothly to 0 there, i.e. to the weighted mean across the line, and is kept (to a factor
+// lambda / (lambda + 1e-3 lambda_max)) everywhere else. The fit is invariant under the sign of
+// the normal (it only turns the frame's u axis over).
+//
+// An earlier version switched to the plain weighted mean when the smallest eigenvalue of the
+// uncentred 3x3 normal matrix fell below 1e-2 of its largest. That ratio mixes the constant term
+// with the spread and is below 1e-2 wherever x sits in a thin, elongated gap of a random
+// sampling (centred spread ratio ~0.07, a perfectly determined slope): the mean there is off by
+// up to |grad a| times the centroid's offset, 0.5 x 0.045 = 0.023 on the colour ramp, one point
+// in ~10^4, present or not by the chance of the particle configuration.
 constexpr int kInterpolationNeighbors = 10;
-// Smallest eigenvalue ratio of the fit's normal matrix (in units of the k-th distance): below
-// it the neighbours are too close to a line for a stable slope, and the weighted mean is used.
-constexpr double kMinConditioning = 1e-2;
+// Dynamic sampling: the neighbours of the tangent ellipse, and the relaxation steps per round.
+constexpr int kSplitNeighbors = 6;
+constexpr int kSplitRelaxIterations = 10;
+constexpr double kSplitRelaxRadius = 1.0;
+constexpr double kSlopeDamping = 1e-3;
 
 struct InterpolationWeights {
     std::array<std::uint32_t, kInterpolationNeighbors> index{};
@@ -41,29 +55,33 @@ InterpolationWeights FitWeights(const Vec3f& x, const Vec3f& normal, std::span<c
     InterpolationWeights w;
     w.count = static_cast<int>(row.size());
     const double h2 = std::max(1e-30, static_cast<double>(dist2.back()));
+    const double s = std::sqrt(h2);
     const LocalFrame frame = LocalFrame::FromNormal(x.cast<double>(), normal.cast<double>());
-    // Rows past `count` stay zero with zero weight.
-    Eigen::Matrix<double, kInterpolationNeighbors, 3> A = Eigen::Matrix<double, kInterpolationNeighbors, 3>::Zero();
-    Eigen::Matrix<double, kInterpolationNeighbors, 1> theta = Eigen::Matrix<double, kInterpolationNeighbors, 1>::Zero();
+    std::array<Eigen::Vector2d, kInterpolationNeighbors> l;
+    std::array<double, kInterpolationNeighbors> theta{};
     double theta_sum = 0.0;
+    Eigen::Vector2d ubar = Eigen::Vector2d::Zero();
     for (int j = 0; j < w.count; ++j) {
         w.index[j] = row[j];
-        const Vec3d l = frame.ToLocal(points[row[j]].cast<double>());
-        const double s = std::sqrt(h2);
-        A.row(j) << 1.0, l.x() / s, l.y() / s;  // scaled to O(1)
+        const Vec3d local = frame.ToLocal(points[row[j]].cast<double>());
+        l[j] = Eigen::Vector2d(local.x(), local.y()) / s;  // scaled to O(1)
         theta[j] = std::exp(-static_cast<double>(dist2[j]) / h2);
         theta_sum += theta[j];
+        ubar += theta[j] * l[j];
     }
-    // Weighted least squares: c = (A^T W A)^-1 A^T W a; the first row of that operator gives the
-    // weights of the values.
-    const Eigen::Matrix3d M = A.transpose() * theta.asDiagonal() * A;
-    const Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eig(M);
-    if (eig.info() == Eigen::Success && eig.eigenvalues()[0] > kMinConditioning * eig.eigenvalues()[2]) {
-        const Eigen::Vector3d e0 = M.ldlt().solve(Eigen::Vector3d::UnitX());
-        for (int j = 0; j < w.count; ++j) w.weight[j] = theta[j] * A.row(j).dot(e0);
-    } else {
-        for (int j = 0; j < w.count; ++j) w.weight[j] = theta[j] / theta_sum;
-    }
+    ubar /= theta_sum;
+    Eigen::Matrix2d C = Eigen::Matrix2d::Zero();
+    for (int j = 0; j < w.count; ++j) C += theta[j] / theta_sum * (l[j] - ubar) * (l[j] - ubar).transpose();
+    // c0 = sum_j theta_j / theta_sum (1 - (l_j - ubar) . C_damped^-1 ubar) a_j.
+    const Eigen::SelfAdjointEigenSolver<Eigen::Matrix2d> eig(C);
+    const double lambda_max = eig.eigenvalues()[1];
+    Eigen::Vector2d z = Eigen::Vector2d::Zero();  // C_damped^-1 ubar
+    if (eig.info() == Eigen::Success && lambda_max > 0)
+        for (int k = 0; k < 2; ++k) {
+            const Eigen::Vector2d e = eig.eigenvectors().col(k);
+            z += e * (e.dot(ubar) / (std::max(0.0, eig.eigenvalues()[k]) + kSlopeDamping * lambda_max));
+        }
+    for (int j = 0; j < w.count; ++j) w.weight[j] = theta[j] / theta_sum * (1.0 - (l[j] - ubar).dot(z));
     return w;
 }
 
@@ -158,11 +176,165 @@ std::size_t OutputCount(const ResampleOptions& options, const ParticleEngine& en
     return count;
 }
 
+// Particle simulation (2.3): the new points; with keep_input the input repels them. The
+// output: kept input points first, then the particles, attributes interpolated from the input.
+void RunParticles(const PointCloud& input, std::span<const Vec3f> normals, std::span<const float> variation,
+                  const ResampleOptions& options, ProgressTracker& tracker, PointCloud& out) {
+    const std::size_t n = input.size();
+    const ParticleEngine engine(input, normals, variation, options.adaptive);
+    const std::size_t count = OutputCount(options, engine, n);
+    ParticleParams params;
+    params.seed = options.seed;
+    params.iterations = options.iterations;
+    params.fixed_input = options.keep_input;
+    params.count = options.keep_input ? count - n : count;
+    std::vector<Vec3f> positions, particle_normals;
+    engine.Run(params, positions, particle_normals, tracker);
+
+    const std::size_t first = options.keep_input ? n : 0;
+    out.positions.reserve(count);
+    out.normals.reserve(count);
+    if (options.keep_input) {
+        out.positions = input.positions;
+        out.normals.assign(normals.begin(), normals.end());
+        out.colors = input.colors;
+        for (const ExtraAttribute& e : input.extras) out.extras.push_back(e);
+    }
+    out.positions.insert(out.positions.end(), positions.begin(), positions.end());
+    out.normals.insert(out.normals.end(), particle_normals.begin(), particle_normals.end());
+    out.color_type = input.color_type;
+    out.color_has_alpha = input.color_has_alpha;
+    InterpolateAttributes(input, engine.tree(), first, out);
+}
+
+// Smoothing (notes 1.3): every input point onto the MLS surface, its attributes kept; the MLS
+// normal turned to agree with the point's own normal; h from the data unless given.
+void RunMls(const PointCloud& input, std::span<const Vec3f> normals, const ResampleOptions& options,
+            ProgressTracker& tracker, PointCloud& out, ResampleReport& report) {
+    const KdTree tree(input.positions);
+    MlsOptions mo;
+    mo.degree = options.mls_degree;
+    mo.adaptive = options.adaptive;
+    mo.h = static_cast<float>(options.mls_h);
+    mo.scale_rule = MlsScaleRule::kNoise;
+    const MlsSurface mls(input, tree, mo);
+    report.mls_h = mls.h();
+    if (mls.scale_choice()) report.noise = mls.scale_choice()->noise;
+    tracker.Advance(0.1);
+    double done = 0.0;
+    const MlsSurface::Batch batch = mls.ProjectAll(input.positions, [&](double fraction) {
+        tracker.Advance(0.8 * std::max(0.0, fraction - done));
+        done = std::max(done, fraction);
+        return !tracker.cancelled();
+    });
+    tracker.Check();
+    report.mls_failed = batch.failed;
+    out = input;
+    out.normals.assign(normals.begin(), normals.end());
+    for (std::size_t i = 0; i < input.size(); ++i) {
+        const Vec3f& nrm = batch.normals[i];
+        if (!(nrm.squaredNorm() > 0.5f) || !batch.positions[i].allFinite()) continue;  // not projected
+        out.positions[i] = batch.positions[i];
+        out.normals[i] = nrm.dot(normals[i]) < 0 ? Vec3f(-nrm) : nrm;
+    }
+    tracker.Advance(0.1);
+}
+
+// Dynamic sampling (notes 3.2.2-3.2.3): rounds of measuring the local spacing, splitting every
+// sample whose tangent ellipse is too long along its main axis into two on that axis, relaxing;
+// then a final MLS projection and attributes from the zombies (the input, never moved).
+void RunSplit(const PointCloud& input, std::span<const Vec3f> normals, const ResampleOptions& options,
+              ProgressTracker& tracker, PointCloud& out, ResampleReport& report) {
+    const ParticleEngine engine(input, normals, {}, false);
+    const double area = engine.WeightedArea();
+    double s = options.spacing;
+    if (s == 0) s = std::sqrt(area / (std::sqrt(3.0) / 2.0 * static_cast<double>(options.target)));
+    // Refused before it starts: the points a lattice of that spacing needs, with the factor 2
+    // a split round can overshoot by.
+    const double lattice = area / (std::sqrt(3.0) / 2.0 * s * s);
+    if (!(2.0 * lattice <= static_cast<double>(kMaxResampleTarget))) {
+        std::ostringstream msg;
+        msg << "gives about " << lattice << " points on this input (area " << area << "); the split method needs "
+            << "twice that to lie within " << static_cast<double>(kMaxResampleTarget);
+        InvalidField(options.spacing != 0 ? "spacing" : "target", msg.str());
+    }
+    std::vector<Vec3f> pos(input.positions), nrm(normals.begin(), normals.end());
+    std::vector<float> extent;
+    std::vector<Vec3f> axis;
+    int round = 0;
+    for (; round < kMaxSplitRounds; ++round) {
+        tracker.Check();
+        // Stretch (3.2.2): the tangent ellipse of the k nearest neighbours, sum d d^T / k in the
+        // tangent plane (s^2 / 2 I for a hexagonal lattice of spacing s): the spacing along the
+        // main axis, sqrt(2 lambda_max), and that axis.
+        const std::size_t m = pos.size();
+        const KdTree tree(pos);
+        const int k = std::min<int>(kSplitNeighbors, static_cast<int>(m) - 1);
+        const KnnTable nn = tree.KnnAll(k);
+        extent.assign(m, 0.0f);
+        axis.assign(m, Vec3f::Zero());
+        tbb::parallel_for(tbb::blocked_range<std::size_t>(0, m, 1024), [&](const auto& range) {
+            for (std::size_t i = range.begin(); i != range.end(); ++i) {
+                const LocalFrame frame = LocalFrame::FromNormal(pos[i].cast<double>(), nrm[i].cast<double>());
+                Eigen::Matrix2d C = Eigen::Matrix2d::Zero();
+                for (const std::uint32_t j : nn.Row(i)) {
+                    const Vec3d l = frame.ToLocal(pos[j].cast<double>());
+                    const Eigen::Vector2d d(l.x(), l.y());
+                    C += d * d.transpose() / static_cast<double>(k);
+                }
+                const Eigen::SelfAdjointEigenSolver<Eigen::Matrix2d> eig(C);
+                const Eigen::Vector2d e = eig.eigenvectors().col(1);
+                extent[i] = static_cast<float>(std::sqrt(2.0 * std::max(0.0, eig.eigenvalues()[1])));
+                axis[i] = (e.x() * frame.u + e.y() * frame.v).cast<float>();
+            }
+        });
+        std::vector<std::uint32_t> split;
+        for (std::size_t i = 0; i < m; ++i)
+            if (extent[i] > kSplitSlack * s) split.push_back(static_cast<std::uint32_t>(i));
+        if (split.empty()) break;
+        // Split (fig. 3.15): p -> p -+ a/4 e on the main axis, a the spacing along it.
+        for (const std::uint32_t i : split) {
+            const Vec3f off = (0.25f * extent[i]) * axis[i];
+            pos.push_back(pos[i] + off);
+            nrm.push_back(nrm[i]);
+            pos[i] -= off;
+        }
+        report.splits += split.size();
+        // Relaxation (3.2.3): repulsion within the target spacing, kept on the surface.
+        engine.Relax(pos, kSplitRelaxRadius * s, kSplitRelaxIterations);
+        tbb::parallel_for(tbb::blocked_range<std::size_t>(0, pos.size(), 1024), [&](const auto& range) {
+            for (std::size_t i = range.begin(); i != range.end(); ++i)
+                nrm[i] = normals[engine.tree().Nearest(pos[i]).index];
+        });
+        tracker.Advance(0.7 / kMaxSplitRounds);
+    }
+    report.iterations = round;
+    report.max_spacing = extent.empty() ? 0.0 : *std::max_element(extent.begin(), extent.end());
+    // Final MLS projection (as the particle engine's), normals like the closest input normal.
+    const MlsSurface mls(input, engine.tree());
+    const MlsSurface::Batch batch = mls.ProjectAll(pos);
+    for (std::size_t p = 0; p < pos.size(); ++p)
+        if (batch.normals[p].allFinite() && batch.normals[p].squaredNorm() > 0.5f && batch.positions[p].allFinite() &&
+            (batch.positions[p] - pos[p]).norm() < s) {
+            pos[p] = batch.positions[p];
+            nrm[p] = batch.normals[p].dot(nrm[p]) < 0 ? Vec3f(-batch.normals[p]) : batch.normals[p];
+        }
+    tracker.Advance(0.1);
+    out.positions = std::move(pos);
+    out.normals = std::move(nrm);
+    out.color_type = input.color_type;
+    out.color_has_alpha = input.color_has_alpha;
+    InterpolateAttributes(input, engine.tree(), 0, out);
+    tracker.Advance(0.1);
+}
+
 }  // namespace
 
 const char* ResampleMethodName(ResampleMethod method) {
     switch (method) {
         case ResampleMethod::kParticle: return "particle";
+        case ResampleMethod::kMls: return "mls";
+        case ResampleMethod::kSplit: return "split";
     }
     return "?";
 }
@@ -177,11 +349,19 @@ std::optional<ResampleMethod> ParseResampleMethod(std::string_view name) {
 void ResampleOptions::Validate() const {
     if (std::find(kResampleMethods.begin(), kResampleMethods.end(), method) == kResampleMethods.end())
         InvalidField("method", "unknown method " + std::to_string(static_cast<int>(method)));
+    if (method == ResampleMethod::kMls && (target > 0 || spacing != 0))
+        InvalidField("target", "the mls method keeps the input's points; give neither target nor spacing");
     if (target > 0 && spacing != 0) InvalidField("target", "give target or spacing, not both");
-    if (target == 0 && spacing == 0) InvalidField("target", "give target or spacing");
+    if (target == 0 && spacing == 0 && method != ResampleMethod::kMls) InvalidField("target", "give target or spacing");
     if (target > 0) CheckRange("target", static_cast<double>(target), 1.0, static_cast<double>(kMaxResampleTarget));
     if (spacing != 0) CheckPositive("spacing", spacing);
     CheckRange("iterations", iterations, 0, kMaxResampleIterations);
+    CheckRange("mls_degree", mls_degree, kMinMlsDegree, kMaxMlsDegree);
+    CheckAtLeast("mls_h", mls_h, 0.0);
+    if (method == ResampleMethod::kMls && keep_input)
+        InvalidField("keep_input", "the mls method moves every input point; it cannot keep them");
+    if (method == ResampleMethod::kSplit && keep_input)
+        InvalidField("keep_input", "the split method splits and relaxes the input's points; it cannot keep them");
 }
 
 std::array<double, 2> NearestNeighborSpacing(std::span<const Vec3f> points) {
@@ -213,14 +393,14 @@ ResampleResult Resample(const PointCloud& input, const ResampleOptions& options,
     report.adaptive = options.adaptive;
     report.keep_input = options.keep_input;
     report.input_points = n;
-    report.iterations = options.iterations;
+    report.iterations = options.method == ResampleMethod::kParticle ? options.iterations : 0;  // split: its rounds
     ProgressTracker tracker(progress, 1.2, "resampling");
     const Stopwatch clock;
 
     // Oriented normals (notes 1.2) and, for the adaptive variant, the surface variation.
     std::vector<Vec3f> normals = input.normals;
     std::vector<float> variation;
-    if (normals.empty() || options.adaptive) {
+    if (normals.empty() || (options.adaptive && options.method == ResampleMethod::kParticle)) {
         const KdTree tree(input.positions);
         NormalOptions no;
         no.k = std::min<int>(16, static_cast<int>(n) - 1);
@@ -235,33 +415,12 @@ ResampleResult Resample(const PointCloud& input, const ResampleOptions& options,
     }
     tracker.Advance(0.1);
 
-    // Particle simulation (2.3): the new points; with keep_input the input repels them.
-    const ParticleEngine engine(input, normals, variation, options.adaptive);
-    const std::size_t count = OutputCount(options, engine, n);
-    ParticleParams params;
-    params.seed = options.seed;
-    params.iterations = options.iterations;
-    params.fixed_input = options.keep_input;
-    params.count = options.keep_input ? count - n : count;
-    std::vector<Vec3f> positions, particle_normals;
-    engine.Run(params, positions, particle_normals, tracker);
-
-    // The output: kept input points first, then the particles.
     PointCloud& out = result.cloud;
-    const std::size_t first = options.keep_input ? n : 0;
-    out.positions.reserve(count);
-    out.normals.reserve(count);
-    if (options.keep_input) {
-        out.positions = input.positions;
-        out.normals = normals;
-        out.colors = input.colors;
-        for (const ExtraAttribute& e : input.extras) out.extras.push_back(e);
+    switch (options.method) {
+        case ResampleMethod::kParticle: RunParticles(input, normals, variation, options, tracker, out); break;
+        case ResampleMethod::kMls: RunMls(input, normals, options, tracker, out, report); break;
+        case ResampleMethod::kSplit: RunSplit(input, normals, options, tracker, out, report); break;
     }
-    out.positions.insert(out.positions.end(), positions.begin(), positions.end());
-    out.normals.insert(out.normals.end(), particle_normals.begin(), particle_normals.end());
-    out.color_type = input.color_type;
-    out.color_has_alpha = input.color_has_alpha;
-    InterpolateAttributes(input, engine.tree(), first, out);
 
     // Splat radius: the spacing eta of the output's own sampling density (notes 1.1.1).
     if (out.size() >= 2) {

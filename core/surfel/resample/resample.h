@@ -5,7 +5,9 @@
 /// density, repelled until even, kept on the surface and MLS-projected at the end. The output
 /// carries MLS normals oriented like the input's, colours and extra attributes interpolated
 /// from the original samples (which stay fixed, like the zombies of notes 3.2.3), and a splat
-/// radius per point.
+/// radius per point. Three methods (ResampleMethod): particle (to a count or spacing, up or
+/// down), mls (smoothing: every point projected, h from the noise), split (densification by
+/// splitting to a spacing, notes 3.2.2-3.2.3).
 
 #include <array>
 #include <cstdint>
@@ -16,39 +18,66 @@
 
 #include "surfel/base/point_cloud.h"
 #include "surfel/base/progress.h"
+#include "surfel/surface/mls.h"
 #include "surfel/surface/surface_error.h"
 
 namespace surfel {
 
 enum class ResampleMethod {
     kParticle,  ///< 2.3: particle simulation on the sampled surface, final MLS projection.
+    /// Smoothing (notes 1.3): every input point replaced by its MLS projection Psi_P(p_i), with
+    /// the MLS normal; the count, colours and extra attributes stay those of the input. h from
+    /// the data by default (ChooseMlsScale: the noise rule), or `mls_h`; `adaptive` makes it
+    /// adaptive MLS, h(x) = h eta(x) / median(eta).
+    kMls,
+    /// Densification by splitting (notes 3.2.2-3.2.3, dynamic sampling): rounds of measuring each
+    /// sample's tangent ellipse (the second moments of its 6 nearest neighbours in the tangent
+    /// plane, s^2 / 2 I on a hexagonal lattice of spacing s), splitting every sample whose spacing
+    /// along the main axis, sqrt(2 lambda_max), exceeds kSplitSlack x the target spacing into two
+    /// samples a quarter of that spacing either side on the axis, and relaxing (linear repulsion
+    /// within the target spacing, on the tangent planes), until no sample exceeds it or
+    /// kMaxSplitRounds; a final MLS projection; colours and attributes interpolated from the
+    /// input samples, which never move (the zombies). Only adds: regions already denser than the
+    /// target keep their samples. Target: `spacing`, or `target` read as the spacing of a
+    /// hexagonal lattice of that many points on the input's area (the count is not exact).
+    kSplit,
 };
 
-/// "particle".
+/// "particle", "mls", "split".
 const char* ResampleMethodName(ResampleMethod method);
 /// Parses a method name; nullopt when unknown.
 std::optional<ResampleMethod> ParseResampleMethod(std::string_view name);
 /// Every method, in declaration order.
-inline constexpr std::array<ResampleMethod, 1> kResampleMethods = {ResampleMethod::kParticle};
+inline constexpr std::array<ResampleMethod, 3> kResampleMethods = {ResampleMethod::kParticle, ResampleMethod::kMls,
+                                                                   ResampleMethod::kSplit};
 
 /// Limits of ResampleOptions, written once here; the CLI, the worker and the docs read them.
 inline constexpr std::size_t kMaxResampleTarget = 1000000000;  ///< Largest output count.
 inline constexpr int kMaxResampleIterations = 1000;            ///< Largest `iterations`.
 /// Smallest input that defines a surface: a sample and its 6 nearest neighbours, and one more.
 inline constexpr std::size_t kMinResampleInput = 8;
+/// split method: a sample is split while its spacing along the main axis exceeds this many
+/// target spacings.
+inline constexpr double kSplitSlack = 1.5;
+/// split method: split-and-relax rounds at most (each can double a region's density).
+inline constexpr int kMaxSplitRounds = 32;
 
 struct ResampleOptions {
     ResampleMethod method = ResampleMethod::kParticle;
     /// Exact number of output points, 1..kMaxResampleTarget, above or below the input's size
-    /// (with keep_input: above it, the input's points included). 0 = use `spacing`.
+    /// (with keep_input: above it, the input's points included). 0 = use `spacing`. The mls
+    /// method keeps the input's count: target and spacing must both be 0 there.
     std::size_t target = 0;
     /// Target spacing in model units, > 0: the output gets the count whose hexagonal lattice on
     /// the input's area (sum of 1 / rho, notes 1.1.1) has this nearest-neighbour distance
     /// (area / (sqrt(3)/2 spacing^2) points); with `adaptive` it is the spacing where the
-    /// surface variation equals its median. 0 = use `target`. Exactly one of the two is given.
+    /// surface variation equals its median. 0 = use `target`. Exactly one of the two is given
+    /// (neither for mls). The split method splits until every sample's spacing along its
+    /// tangent ellipse's main axis is at most kSplitSlack x this.
     double spacing = 0.0;
     /// Curvature-adaptive (2.3.4): repulsion radius scaled by 1 / sigma_n relative to the
     /// median, clamped to [1/2, 2], so up to 16x the density where the surface bends most.
+    /// With the mls method: adaptive MLS (notes 1.3), h(x) = h eta(x) / median(eta).
     bool adaptive = false;
     /// Keep every input point unchanged (with its attributes) and only add points: the input
     /// points repel the new ones but never move. Needs a count above the input's size.
@@ -56,14 +85,25 @@ struct ResampleOptions {
     std::uint64_t seed = 1;   ///< Seeds the initial spreading (2.3.1); every value is valid.
     /// Relaxation steps of the particle simulation, 0..kMaxResampleIterations.
     int iterations = 40;
+    /// mls method: degree of the MLS polynomial (notes eq. 1.3), kMinMlsDegree..kMaxMlsDegree.
+    int mls_degree = 2;
+    /// mls method: Gaussian scale h of theta(d) = exp(-d^2 / h^2), model units, >= 0 and finite;
+    /// 0 = chosen from the data by ChooseMlsScale (surface/mls.h: the largest scale whose
+    /// projection stays within the noise of all smaller ones, found from the residuals of the
+    /// local fits; 2 x median spacing on clean data, ~4x that on a 1 %-noise sphere).
+    double mls_h = 0.0;
     bool measure_error = true;          ///< Compute the surface error of the result (Delta_max, Delta_avg).
     std::size_t error_samples = 20000;  ///< |Q| for the surface error (0 = every input point).
 
     /// Throws Error(kInvalidArgument, "<field>: <what>") for the first bad field, named as in
     /// the job spec: "method: unknown method 7", "target: give target or spacing, not both",
     /// "target: give target or spacing", "target: must lie in 1..1e+09, got V",
-    /// "spacing: must be positive, got V", "iterations: must lie in 0..1000, got V". Options
-    /// only: counts that the input makes impossible are checked by Resample().
+    /// "spacing: must be positive, got V", "iterations: must lie in 0..1000, got V",
+    /// "mls_degree: must lie in 0..2, got V", "mls_h: must be finite and at least 0, got V",
+    /// "target: the mls method keeps the input's points; give neither target nor spacing",
+    /// "keep_input: the mls method moves every input point; it cannot keep them", "keep_input:
+    /// the split method splits and relaxes the input's points; it cannot keep them". Options only:
+    /// counts that the input makes impossible are checked by Resample().
     void Validate() const;
 };
 
@@ -74,7 +114,7 @@ struct ResampleReport {
     bool keep_input = false;
     std::size_t input_points = 0;
     std::size_t output_points = 0;
-    int iterations = 0;            ///< Relaxation steps run.
+    int iterations = 0;            ///< Relaxation steps run (mls: 0; split: split-and-relax rounds).
     double spacing_mean = 0.0;     ///< Mean nearest-neighbour distance of the output, model units.
     /// Coefficient of variation (std. deviation / mean) of the output's nearest-neighbour
     /// distances: 0 for a hexagonal lattice, about 0.52 for uniform random sampling.
@@ -84,6 +124,17 @@ struct ResampleReport {
     /// Delta_max / Delta_avg of the input's surface against the output's (notes 2.4, eq. 2.4-2.5).
     std::optional<SurfaceError> error;
     bool normals_estimated = false;  ///< The input had no normals; they were estimated.
+    /// mls method: the scale h used (model units; adaptive: the multiplier of eta / median eta).
+    double mls_h = 0.0;
+    /// mls method with mls_h = 0: the noise sigma that ChooseMlsScale estimated (model units).
+    double noise = 0.0;
+    /// mls method: points with too few neighbours to project, output where they were.
+    std::size_t mls_failed = 0;
+    /// split method: samples split in all.
+    std::size_t splits = 0;
+    /// split method: the largest spacing along a tangent ellipse's main axis after the last
+    /// round (model units); <= kSplitSlack x the target spacing unless kMaxSplitRounds ran out.
+    double max_spacing = 0.0;
 };
 
 struct ResampleResult {

@@ -5,7 +5,9 @@
 
 #include <Eigen/Cholesky>
 #include <Eigen/Eigenvalues>
+#include <algorithm>
 #include <cmath>
+#include <string>
 
 #include "surfel/base/error.h"
 #include "surfel/base/validate.h"
@@ -14,6 +16,48 @@
 #include "surfel/spatial/uniform_grid.h"
 
 namespace surfel {
+namespace {
+
+// Statistics of one polynomial fit for the noise rule (ChooseMlsScale): sum w r^2, and in the
+// scaled terms t = (1, x/h, y/h, x^2/h^2, x y/h^2, y^2/h^2) of the fitted degree, with
+// M = sum w t t^T and B = sum w^2 t t^T: sum w - tr(M^-1 B) (the residual's degrees of freedom)
+// and [M^-1 B M^-1]_00 (the variance of c0 per unit noise variance).
+struct FitStats {
+    double residual2 = 0.0;
+    double dof = 0.0;
+    double variance = 0.0;
+    bool valid = false;
+};
+
+FitStats ComputeFitStats(const NeighborBatch& nb, int degree, double h, const PolyCoeffs& g) {
+    const int terms = degree == 0 ? 1 : degree == 1 ? 3 : 6;
+    Eigen::Matrix<double, 6, 6> M = Eigen::Matrix<double, 6, 6>::Zero(), B = Eigen::Matrix<double, 6, 6>::Zero();
+    FitStats st;
+    double wsum = 0.0;
+    for (std::size_t j = 0; j < nb.size(); ++j) {
+        const double x = nb.lx[j], y = nb.ly[j], w = nb.w[j];
+        const double r = nb.lz[j] - g(x, y);
+        st.residual2 += w * r * r;
+        wsum += w;
+        const double xs = x / h, ys = y / h;
+        Eigen::Matrix<double, 6, 1> t;
+        t << 1.0, xs, ys, xs * xs, xs * ys, ys * ys;
+        M.noalias() += w * t * t.transpose();
+        B.noalias() += (w * w) * t * t.transpose();
+    }
+    const Eigen::MatrixXd Mt = M.topLeftCorner(terms, terms), Bt = B.topLeftCorner(terms, terms);
+    const Eigen::LDLT<Eigen::MatrixXd> ldlt(Mt);
+    if (ldlt.info() != Eigen::Success || !(ldlt.vectorD().minCoeff() > 1e-10 * ldlt.vectorD().cwiseAbs().maxCoeff()))
+        return st;
+    const Eigen::MatrixXd MiB = ldlt.solve(Bt);
+    const Eigen::VectorXd e0 = ldlt.solve(Eigen::VectorXd::Unit(terms, 0));
+    st.dof = wsum - MiB.trace();
+    st.variance = e0.dot(Bt * e0);
+    st.valid = std::isfinite(st.variance) && st.dof > 0;
+    return st;
+}
+
+}  // namespace
 
 struct MlsSurface::Impl {
     const PointCloud& cloud;
@@ -21,6 +65,7 @@ struct MlsSurface::Impl {
     MlsOptions opt;
     SamplingDensity density;  // only for adaptive h
     std::unique_ptr<UniformGrid> grid;  // fixed h: neighbours within cutoff * h, cell = cutoff * h
+    std::optional<MlsScaleChoice> choice;  // the noise rule's, when it chose h
 
     Impl(const PointCloud& c, const KdTree& t, const MlsOptions& o) : cloud(c), tree(t), opt(o) {}
 
@@ -39,7 +84,7 @@ struct MlsSurface::Impl {
         return static_cast<float>(opt.h * (es / ws) / density.median_spacing);
     }
 
-    std::optional<MlsPoint> Project(const Vec3f& xf, std::vector<Neighbor>& nbrs) const {
+    std::optional<MlsPoint> Project(const Vec3f& xf, std::vector<Neighbor>& nbrs, FitStats* stats = nullptr) const {
         const float h = LocalH(xf, nbrs);
         const Vec3d x = xf.cast<double>();
         // Neighbours relative to x (small, well-conditioned numbers), as arrays for the
@@ -96,6 +141,7 @@ struct MlsSurface::Impl {
         fit.AddBatch(nb.lx.data(), nb.ly.data(), nb.lz.data(), nb.w.data(), m);
         PolyCoeffs g;
         if (!fit.Solve(&g)) return std::nullopt;
+        if (stats) *stats = ComputeFitStats(nb, opt.degree, h, g);
         MlsPoint out;
         out.position = (x + q + g.c[0] * n).cast<float>();
         Vec3d normal = frame.NormalAt(g, 0.0, 0.0);
@@ -115,6 +161,74 @@ void MlsOptions::Validate() const {
     CheckRange("max_iterations", max_iterations, kMinMlsIterations, kMaxMlsIterations);
     CheckRange("tolerance", tolerance, 0.0, kMaxMlsTolerance);
     CheckRange("min_neighbors", min_neighbors, kMinMlsNeighbors, kMaxMlsNeighbors);
+    if (scale_rule != MlsScaleRule::kSpacing && scale_rule != MlsScaleRule::kNoise)
+        InvalidField("scale_rule", "unknown rule " + std::to_string(static_cast<int>(scale_rule)));
+}
+
+// The noise rule (see the header): per sample point, ICI over the scales h0 sqrt(2)^k; h the
+// median of the chosen scales.
+MlsScaleChoice ChooseMlsScale(const PointCloud& cloud, const KdTree& tree, const MlsOptions& options) {
+    MlsOptions o = options;
+    o.h = 0.0f;
+    o.scale_rule = MlsScaleRule::kSpacing;
+    const MlsSurface base(cloud, tree, o);  // validates, derives h0
+    MlsSurface::Impl& impl = *base.impl_;
+    impl.grid.reset();  // the candidates change h: radius queries on the kd-tree
+    MlsScaleChoice choice;
+    choice.h0 = impl.opt.h;
+    const std::size_t n = cloud.size(), count = std::min(n, kMlsNoiseSamples);
+    std::vector<double> chosen(count, -1.0), noise(count, -1.0);
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, count, 8), [&](const tbb::blocked_range<std::size_t>& r) {
+        std::vector<Neighbor> buf;
+        MlsSurface::Impl local(impl.cloud, impl.tree, impl.opt);
+        if (impl.opt.adaptive) local.density = impl.density;
+        // The noise is measured with the quadratic, whatever the degree asked for: the
+        // residuals of a plane or a constant on a curved surface are its bias, not noise.
+        MlsSurface::Impl quadratic(impl.cloud, impl.tree, impl.opt);
+        quadratic.opt.degree = 2;
+        if (impl.opt.adaptive) quadratic.density = impl.density;
+        for (std::size_t s = r.begin(); s != r.end(); ++s) {
+            const Vec3f& p = cloud.positions[s * n / count];
+            double lo = -INFINITY, hi = INFINITY, sigma = 0.0;
+            Vec3d n0 = Vec3d::Zero();
+            for (int k = 0; k < kMlsNoiseScales; ++k) {
+                local.opt.h = static_cast<float>(choice.h0 * std::pow(std::sqrt(2.0), k));
+                FitStats st;
+                const std::optional<MlsPoint> q = local.Project(p, buf, &st);
+                if (!q || !st.valid) break;
+                if (k == 0) {
+                    FitStats st2 = st;
+                    if (impl.opt.degree != 2 && !(quadratic.Project(p, buf, &st2) && st2.valid)) break;
+                    sigma = std::sqrt(st2.residual2 / st2.dof);
+                    n0 = q->normal.cast<double>();
+                    noise[s] = sigma;
+                }
+                const double y = (q->position - p).cast<double>().dot(n0);
+                const double sd = sigma * std::sqrt(std::max(0.0, st.variance));
+                lo = std::max(lo, y - kMlsNoiseGamma * sd);
+                hi = std::min(hi, y + kMlsNoiseGamma * sd);
+                if (lo > hi) break;
+                chosen[s] = local.opt.h;
+            }
+        }
+    });
+    std::vector<double> hs, sigmas;
+    for (std::size_t s = 0; s < count; ++s) {
+        if (chosen[s] > 0) hs.push_back(chosen[s]);
+        if (noise[s] >= 0) sigmas.push_back(noise[s]);
+    }
+    choice.samples = hs.size();
+    choice.h = choice.h0;
+    if (!hs.empty()) {
+        std::nth_element(hs.begin(), hs.begin() + static_cast<std::ptrdiff_t>(hs.size() / 2), hs.end());
+        choice.h = static_cast<float>(hs[hs.size() / 2]);
+    }
+    if (!sigmas.empty()) {
+        std::nth_element(sigmas.begin(), sigmas.begin() + static_cast<std::ptrdiff_t>(sigmas.size() / 2), sigmas.end());
+        choice.noise = sigmas[sigmas.size() / 2];
+    }
+    choice.scale_factor = choice.h / choice.h0;
+    return choice;
 }
 
 MlsSurface::MlsSurface(const PointCloud& cloud, const KdTree& tree, const MlsOptions& options)
@@ -122,6 +236,10 @@ MlsSurface::MlsSurface(const PointCloud& cloud, const KdTree& tree, const MlsOpt
     SURFEL_CHECK(tree.size() == cloud.size(), "tree over " << tree.size() << " points, cloud " << cloud.size());
     options.Validate();
     if (options.adaptive) impl_->density = ComputeSamplingDensity(tree);
+    if (impl_->opt.h == 0 && options.scale_rule == MlsScaleRule::kNoise) {
+        impl_->choice = ChooseMlsScale(cloud, tree, options);
+        impl_->opt.h = impl_->choice->h;
+    }
     if (impl_->opt.h == 0)
         impl_->opt.h = options.adaptive ? DefaultScale(impl_->density) : 2.0f * MedianSpacing(tree);
     if (!(impl_->opt.h > 0)) throw Error(ErrorCode::kInvalidArgument, "cannot derive an MLS scale from fewer than 2 distinct points");
@@ -138,6 +256,8 @@ MlsSurface::MlsSurface(const PointCloud& cloud, const KdTree& tree, const MlsOpt
 MlsSurface::~MlsSurface() = default;
 
 float MlsSurface::h() const { return impl_->opt.h; }
+
+const std::optional<MlsScaleChoice>& MlsSurface::scale_choice() const { return impl_->choice; }
 
 std::optional<MlsPoint> MlsSurface::Project(const Vec3f& x) const {
     std::vector<Neighbor> buf;
