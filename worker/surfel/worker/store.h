@@ -1,15 +1,26 @@
 #pragma once
 /// \file
-/// Persistence of the service: SQLite (WAL) for clouds and jobs, a blob directory for uploads,
-/// clouds and results, all under one data directory.
+/// Persistence of the service: an interface (`Store`) over a database of clouds' and jobs'
+/// metadata, with two backends chosen by `OpenStore`:
 ///
-///   <data>/surfel.db            tables `clouds` and `jobs`
+///   sqlite      (the default) one process, SQLite in WAL mode: <data>/surfel.db
+///   postgres    many servers and workers sharing one PostgreSQL database (libpq);
+///               see store_postgres.h
+///
+/// Both keep one schema, created and upgraded at open by the versioned migrations of
+/// store_migrations.h (table `schema_migrations`). Blobs stay in a local data directory for both
+/// backends (a shared mount for several machines):
+///
 ///   <data>/uploads/<id>.part    bytes of unfinished uploads (resumable)
 ///   <data>/clouds/<sha256>      uploaded files, content-addressed
 ///   <data>/results/<job id>     job results
+///
+/// Every method is safe to call from several threads. Errors are surfel::Error: kUnavailable
+/// when the database cannot be reached, kInternal for a record that does not parse or a
+/// statement the database refuses.
 
+#include <cstdint>
 #include <memory>
-#include <mutex>
 #include <optional>
 #include <string>
 #include <vector>
@@ -19,42 +30,124 @@
 
 namespace surfel::worker {
 
+/// A job claimed by one worker, held under a lease that the worker renews by Heartbeat.
+struct LeasedJob {
+    /// As stored by the claim: RUNNING, started_unix_ms set.
+    v1::Job job;
+    /// The claimer's name (unique per worker thread).
+    std::string owner;
+    /// Unix ms; after it RequeueExpired may take the job back.
+    std::int64_t lease_expires_ms = 0;
+    /// Earlier leases of this job that expired (0 on a first run).
+    int attempts = 0;
+};
+
+/// The store interface. The blob paths are shared by all backends; the records are the backend's.
 class Store {
 public:
-    /// Opens (creating when missing) the data directory and its database. Throws surfel::Error.
-    explicit Store(const std::string& data_dir);
-    ~Store();
+    virtual ~Store();
     Store(const Store&) = delete;
     Store& operator=(const Store&) = delete;
 
+    /// The blob directory (uploads, clouds, results).
     const std::string& data_dir() const { return data_dir_; }
     std::string CloudPath(const std::string& cloud_id) const;
     std::string ResultPath(const std::string& job_id) const;
     std::string UploadPath(const std::string& upload_id) const;
 
     // ---- clouds
-    std::optional<v1::Cloud> FindCloud(const std::string& id) const;
+    virtual std::optional<v1::Cloud> FindCloud(const std::string& id) const = 0;
     /// Records a cloud whose bytes are already at CloudPath(id); no-op when it exists.
-    void PutCloud(const v1::Cloud& cloud);
+    virtual void PutCloud(const v1::Cloud& cloud) = 0;
     /// Removes the record and the bytes; false when unknown.
     bool DeleteCloud(const std::string& id);
 
     // ---- jobs (stored as serialized surfel.v1.Job plus indexed columns)
-    void PutJob(const v1::Job& job, const std::string& key);  ///< insert or replace
-    std::optional<v1::Job> FindJob(const std::string& id) const;
+    /// Insert or replace. On replace the key, creation time and order are kept (an empty key
+    /// is how the job manager writes a transition).
+    virtual void PutJob(const v1::Job& job, const std::string& key) = 0;
+    virtual std::optional<v1::Job> FindJob(const std::string& id) const = 0;
     /// The newest job with this key that is queued, running or succeeded.
-    std::optional<v1::Job> FindReusable(const std::string& key) const;
-    std::vector<v1::Job> ListJobs(std::size_t limit, v1::JobState state) const;
+    virtual std::optional<v1::Job> FindReusable(const std::string& key) const = 0;
+    /// The newest `limit` jobs, newest first; all states when `state` is JOB_STATE_UNSPECIFIED.
+    virtual std::vector<v1::Job> ListJobs(std::size_t limit, v1::JobState state) const = 0;
     /// Jobs left QUEUED or RUNNING (by a crash or a shutdown), oldest first.
-    std::vector<v1::Job> Unfinished() const;
+    virtual std::vector<v1::Job> Unfinished() const = 0;
+
+    // ---- the shared queue: claim, lease, heartbeat, requeue (not used by the JobManager yet)
+    /// Claims the oldest QUEUED job for `owner`: one short statement (PostgreSQL:
+    /// `SELECT … FOR UPDATE SKIP LOCKED`, so concurrent claimers never get the same job and never
+    /// wait for each other), which sets the job RUNNING with a lease of `lease_ms` from now.
+    /// No row lock or transaction stays open after it returns. nullopt when nothing is queued.
+    virtual std::optional<LeasedJob> ClaimNext(const std::string& owner, std::int64_t lease_ms) = 0;
+    /// Extends the lease of a RUNNING job held by `owner` to `lease_ms` from now. False when the
+    /// lease was lost (expired and requeued, claimed by another, or the job ended).
+    virtual bool Heartbeat(const std::string& job_id, const std::string& owner,
+                           std::int64_t lease_ms) = 0;
+    /// Writes a job (a progress update or its end) only while `owner` holds its lease; a final
+    /// state releases the lease. False, changing nothing, when the lease was lost.
+    virtual bool PutLeasedJob(const v1::Job& job, const std::string& owner) = 0;
+    /// Takes back every RUNNING job whose lease expired before `now_unix_ms`: attempts + 1, and
+    /// QUEUED again, or FAILED (UNAVAILABLE, a message naming the attempts and the last owner)
+    /// once attempts reaches `max_attempts` (>= 1). Returns those jobs as now stored.
+    /// Jobs running without a lease (the single-node JobManager) are never touched.
+    virtual std::vector<v1::Job> RequeueExpired(std::int64_t now_unix_ms, int max_attempts) = 0;
+
+protected:
+    /// Creates (when missing) the blob directories under `data_dir`. Throws kInvalidArgument.
+    explicit Store(const std::string& data_dir);
 
 private:
-    struct Impl;
+    /// Removes the cloud's record; false when unknown.
+    virtual bool DeleteCloudRecord(const std::string& id) = 0;
+
     std::string data_dir_;
+};
+
+/// The embedded default: SQLite (WAL) in one file, blobs in a directory.
+class SqliteStore final : public Store {
+public:
+    /// Opens (creating when missing) `data_dir` and its database `<data_dir>/surfel.db`, and
+    /// applies the migrations. Throws surfel::Error.
+    explicit SqliteStore(const std::string& data_dir);
+    /// Same, with the database at `database_file` and the blobs under `data_dir`.
+    SqliteStore(const std::string& database_file, const std::string& data_dir);
+    ~SqliteStore() override;
+
+    std::optional<v1::Cloud> FindCloud(const std::string& id) const override;
+    void PutCloud(const v1::Cloud& cloud) override;
+    void PutJob(const v1::Job& job, const std::string& key) override;
+    std::optional<v1::Job> FindJob(const std::string& id) const override;
+    std::optional<v1::Job> FindReusable(const std::string& key) const override;
+    std::vector<v1::Job> ListJobs(std::size_t limit, v1::JobState state) const override;
+    std::vector<v1::Job> Unfinished() const override;
+    std::optional<LeasedJob> ClaimNext(const std::string& owner, std::int64_t lease_ms) override;
+    bool Heartbeat(const std::string& job_id, const std::string& owner,
+                   std::int64_t lease_ms) override;
+    bool PutLeasedJob(const v1::Job& job, const std::string& owner) override;
+    std::vector<v1::Job> RequeueExpired(std::int64_t now_unix_ms, int max_attempts) override;
+
+private:
+    bool DeleteCloudRecord(const std::string& id) override;
+
+    struct Impl;
     std::unique_ptr<Impl> impl_;
 };
 
+/// Opens the store named by `url_or_dir`, its blobs under `data_dir`:
+///   ""  or "sqlite"                  SQLite at <data_dir>/surfel.db (today's default)
+///   "sqlite:FILE"                    SQLite at FILE
+///   "postgres://…", "postgresql://…" PostgreSQL (a libpq connection URI)
+///   any other string without "://"   a directory: SQLite at <that dir>/surfel.db; the blobs
+///                                    there too when `data_dir` is empty
+/// Throws kInvalidArgument for another scheme, and whatever the backend's constructor throws.
+std::unique_ptr<Store> OpenStore(const std::string& url_or_dir, const std::string& data_dir);
+
 /// Milliseconds since the Unix epoch.
 std::int64_t NowUnixMs();
+
+/// The status message of a job failed by RequeueExpired, e.g. "lease expired on attempt 3 of 3
+/// (last owner worker-a); giving up".
+std::string LeaseExhaustedMessage(int attempts, int max_attempts, const std::string& last_owner);
 
 }  // namespace surfel::worker

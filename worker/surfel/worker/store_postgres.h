@@ -1,0 +1,49 @@
+#pragma once
+/// \file
+/// The PostgreSQL backend of the store (libpq), for many servers and workers on separate
+/// machines sharing one database; the blobs stay in a directory (a shared mount) for now.
+///
+/// Each PostgresStore holds one connection, used by one thread at a time (a mutex), so a
+/// process that wants parallel claims opens one store per claiming thread. A lost connection is
+/// reported as kUnavailable and re-established on the next call. Leases are compared with the
+/// callers' clocks (Unix ms), which must agree to well within a lease (NTP).
+
+#include <memory>
+#include <string>
+
+#include "surfel/worker/store.h"
+
+namespace surfel::worker {
+
+class PostgresStore final : public Store {
+public:
+    /// Connects to `url` (a libpq connection URI, "postgres://user@host:port/db?…"), applies
+    /// the migrations (serialised between processes by an advisory lock) and keeps the blobs
+    /// under `data_dir`. Throws kUnavailable when the database cannot be reached.
+    PostgresStore(const std::string& url, const std::string& data_dir);
+    ~PostgresStore() override;
+
+    std::optional<v1::Cloud> FindCloud(const std::string& id) const override;
+    void PutCloud(const v1::Cloud& cloud) override;
+    void PutJob(const v1::Job& job, const std::string& key) override;
+    std::optional<v1::Job> FindJob(const std::string& id) const override;
+    std::optional<v1::Job> FindReusable(const std::string& key) const override;
+    std::vector<v1::Job> ListJobs(std::size_t limit, v1::JobState state) const override;
+    std::vector<v1::Job> Unfinished() const override;
+    std::optional<LeasedJob> ClaimNext(const std::string& owner, std::int64_t lease_ms) override;
+    bool Heartbeat(const std::string& job_id, const std::string& owner,
+                   std::int64_t lease_ms) override;
+    bool PutLeasedJob(const v1::Job& job, const std::string& owner) override;
+    std::vector<v1::Job> RequeueExpired(std::int64_t now_unix_ms, int max_attempts) override;
+
+private:
+    bool DeleteCloudRecord(const std::string& id) override;
+
+    struct Impl;
+    std::unique_ptr<Impl> impl_;
+};
+
+/// `url` with its password, if any, replaced by "***" (for messages and logs).
+std::string RedactDatabaseUrl(const std::string& url);
+
+}  // namespace surfel::worker

@@ -1,0 +1,308 @@
+// The SQLite backend of the store: one connection in WAL mode behind a mutex.
+#include <SQLiteCpp/SQLiteCpp.h>
+
+#include <filesystem>
+#include <mutex>
+
+#include "surfel/base/error.h"
+#include "surfel/worker/job_state.h"
+#include "surfel/worker/store.h"
+#include "surfel/worker/store_common.h"
+#include "surfel/worker/store_migrations.h"
+
+namespace surfel::worker {
+namespace {
+
+v1::Job ParseJob(const SQLite::Column& blob) {
+    v1::Job job;
+    if (!job.ParseFromArray(blob.getBlob(), blob.getBytes()))
+        throw Error(ErrorCode::kInternal, "store: a job record does not parse");
+    return job;
+}
+
+void BindRecord(SQLite::Statement& q, int index, const std::string& blob) {
+    q.bind(index, blob.data(), static_cast<int>(blob.size()));
+}
+
+/// BEGIN IMMEDIATE … COMMIT, rolled back when left by an exception.
+class WriteTransaction {
+public:
+    explicit WriteTransaction(SQLite::Database& db) : db_(db) { db_.exec("BEGIN IMMEDIATE"); }
+    ~WriteTransaction() {
+        if (!done_) {
+            try {
+                db_.exec("ROLLBACK");
+            } catch (const SQLite::Exception&) {  // nothing more to undo
+            }
+        }
+    }
+    WriteTransaction(const WriteTransaction&) = delete;
+    WriteTransaction& operator=(const WriteTransaction&) = delete;
+    void Commit() {
+        db_.exec("COMMIT");
+        done_ = true;
+    }
+
+private:
+    SQLite::Database& db_;
+    bool done_ = false;
+};
+
+}  // namespace
+
+struct SqliteStore::Impl {
+    explicit Impl(const std::string& path)
+        : db(path, SQLite::OPEN_READWRITE | SQLite::OPEN_CREATE | SQLite::OPEN_FULLMUTEX) {}
+    mutable std::mutex mutex;
+    SQLite::Database db;
+};
+
+SqliteStore::SqliteStore(const std::string& data_dir)
+    : SqliteStore(data_dir + "/surfel.db", data_dir) {}
+
+SqliteStore::SqliteStore(const std::string& database_file, const std::string& data_dir)
+    : Store(data_dir) {
+    std::error_code ec;
+    const std::filesystem::path parent = std::filesystem::path(database_file).parent_path();
+    if (!parent.empty()) std::filesystem::create_directories(parent, ec);
+    if (ec)
+        throw Error(ErrorCode::kInvalidArgument, "database " + database_file + ": " + ec.message());
+    try {
+        impl_ = std::make_unique<Impl>(database_file);
+        auto& db = impl_->db;
+        db.exec("PRAGMA busy_timeout=5000");  // first: another process may be opening it too
+        db.exec("PRAGMA journal_mode=WAL");
+        db.exec("PRAGMA synchronous=NORMAL");  // durable across process crashes in WAL mode
+        // Migrations: each one with its record in one transaction, so a crash or a second
+        // process opening at the same time never applies one twice.
+        db.exec(kSchemaMigrationsTable);
+        for (const Migration& m : Migrations()) {
+            WriteTransaction tx(db);
+            SQLite::Statement newest(db, "SELECT COALESCE(MAX(version), 0) FROM schema_migrations");
+            newest.executeStep();
+            const std::int64_t applied = newest.getColumn(0).getInt64();
+            store_detail::CheckSchemaNotNewer(applied, "database " + database_file);
+            if (applied >= m.version) continue;
+            db.exec(m.sqlite);
+            SQLite::Statement rec(
+                db, "INSERT INTO schema_migrations (version, name, applied_ms) VALUES (?, ?, ?)");
+            rec.bind(1, m.version);
+            rec.bind(2, m.name);
+            rec.bind(3, static_cast<std::int64_t>(NowUnixMs()));
+            rec.exec();
+            tx.Commit();
+        }
+    } catch (const SQLite::Exception& e) {
+        throw Error(ErrorCode::kInternal, "database " + database_file + ": " + e.what());
+    }
+}
+
+SqliteStore::~SqliteStore() = default;
+
+// ---- clouds
+
+std::optional<v1::Cloud> SqliteStore::FindCloud(const std::string& id) const {
+    std::lock_guard lock(impl_->mutex);
+    SQLite::Statement q(impl_->db, "SELECT record FROM clouds WHERE id = ?");
+    q.bind(1, id);
+    if (!q.executeStep()) return std::nullopt;
+    v1::Cloud c;
+    const SQLite::Column col = q.getColumn(0);
+    if (!c.ParseFromArray(col.getBlob(), col.getBytes()))
+        throw Error(ErrorCode::kInternal, "store: bad cloud record");
+    return c;
+}
+
+void SqliteStore::PutCloud(const v1::Cloud& cloud) {
+    std::lock_guard lock(impl_->mutex);
+    SQLite::Statement q(impl_->db,
+                        "INSERT OR IGNORE INTO clouds (id, record, created_ms) VALUES (?, ?, ?)");
+    const std::string blob = cloud.SerializeAsString();
+    q.bind(1, cloud.id());
+    BindRecord(q, 2, blob);
+    q.bind(3, static_cast<std::int64_t>(NowUnixMs()));
+    q.exec();
+}
+
+bool SqliteStore::DeleteCloudRecord(const std::string& id) {
+    std::lock_guard lock(impl_->mutex);
+    SQLite::Statement q(impl_->db, "DELETE FROM clouds WHERE id = ?");
+    q.bind(1, id);
+    return q.exec() > 0;
+}
+
+// ---- jobs
+
+void SqliteStore::PutJob(const v1::Job& job, const std::string& key) {
+    std::lock_guard lock(impl_->mutex);
+    SQLite::Statement q(
+        impl_->db,
+        "INSERT INTO jobs (id, key, state, created_ms, seq, record) VALUES (?, ?, ?, ?, "
+        "(SELECT COALESCE(MAX(seq), 0) + 1 FROM jobs), ?) ON CONFLICT(id) DO UPDATE SET "
+        "state = excluded.state, record = excluded.record");
+    const std::string blob = job.SerializeAsString();
+    q.bind(1, job.id());
+    q.bind(2, key);
+    q.bind(3, static_cast<int>(job.state()));
+    q.bind(4, static_cast<std::int64_t>(job.created_unix_ms()));
+    BindRecord(q, 5, blob);
+    q.exec();
+}
+
+std::optional<v1::Job> SqliteStore::FindJob(const std::string& id) const {
+    std::lock_guard lock(impl_->mutex);
+    SQLite::Statement q(impl_->db, "SELECT record FROM jobs WHERE id = ?");
+    q.bind(1, id);
+    if (!q.executeStep()) return std::nullopt;
+    return ParseJob(q.getColumn(0));
+}
+
+std::optional<v1::Job> SqliteStore::FindReusable(const std::string& key) const {
+    std::lock_guard lock(impl_->mutex);
+    SQLite::Statement q(
+        impl_->db,
+        "SELECT record FROM jobs WHERE key = ? AND state IN (?, ?, ?) ORDER BY seq DESC LIMIT 1");
+    q.bind(1, key);
+    q.bind(2, static_cast<int>(v1::QUEUED));
+    q.bind(3, static_cast<int>(v1::RUNNING));
+    q.bind(4, static_cast<int>(v1::SUCCEEDED));
+    if (!q.executeStep()) return std::nullopt;
+    return ParseJob(q.getColumn(0));
+}
+
+std::vector<v1::Job> SqliteStore::ListJobs(std::size_t limit, v1::JobState state) const {
+    std::lock_guard lock(impl_->mutex);
+    std::vector<v1::Job> out;
+    SQLite::Statement q(impl_->db,
+                        state == v1::JOB_STATE_UNSPECIFIED
+                            ? "SELECT record FROM jobs ORDER BY seq DESC LIMIT ?"
+                            : "SELECT record FROM jobs WHERE state = ? ORDER BY seq DESC LIMIT ?");
+    int i = 1;
+    if (state != v1::JOB_STATE_UNSPECIFIED) q.bind(i++, static_cast<int>(state));
+    q.bind(i, static_cast<std::int64_t>(limit));
+    while (q.executeStep()) out.push_back(ParseJob(q.getColumn(0)));
+    return out;
+}
+
+std::vector<v1::Job> SqliteStore::Unfinished() const {
+    std::lock_guard lock(impl_->mutex);
+    std::vector<v1::Job> out;
+    SQLite::Statement q(impl_->db,
+                        "SELECT record FROM jobs WHERE state IN (?, ?) ORDER BY seq ASC");
+    q.bind(1, static_cast<int>(v1::QUEUED));
+    q.bind(2, static_cast<int>(v1::RUNNING));
+    while (q.executeStep()) out.push_back(ParseJob(q.getColumn(0)));
+    return out;
+}
+
+// ---- the queue. One connection behind a mutex: a claim is the oldest QUEUED row turned
+// RUNNING inside one short write transaction (BEGIN IMMEDIATE also serialises other processes
+// on the same file).
+
+std::optional<LeasedJob> SqliteStore::ClaimNext(const std::string& owner, std::int64_t lease_ms) {
+    store_detail::CheckLease(owner, lease_ms);
+    std::lock_guard lock(impl_->mutex);
+    auto& db = impl_->db;
+    WriteTransaction tx(db);
+    SQLite::Statement pick(
+        db, "SELECT id, record, attempts FROM jobs WHERE state = ? ORDER BY seq ASC LIMIT 1");
+    pick.bind(1, static_cast<int>(v1::QUEUED));
+    if (!pick.executeStep()) return std::nullopt;
+    const std::int64_t now = NowUnixMs();
+    LeasedJob leased;
+    leased.job = store_detail::ClaimedRecord(ParseJob(pick.getColumn(1)), now);
+    leased.owner = owner;
+    leased.lease_expires_ms = now + lease_ms;
+    leased.attempts = pick.getColumn(2).getInt();
+    const std::string id = pick.getColumn(0).getString();
+    pick.reset();
+    SQLite::Statement q(db,
+                        "UPDATE jobs SET state = ?, lease_owner = ?, lease_expires_ms = ?, "
+                        "record = ? WHERE id = ?");
+    const std::string blob = leased.job.SerializeAsString();
+    q.bind(1, static_cast<int>(v1::RUNNING));
+    q.bind(2, owner);
+    q.bind(3, static_cast<std::int64_t>(leased.lease_expires_ms));
+    BindRecord(q, 4, blob);
+    q.bind(5, id);
+    q.exec();
+    tx.Commit();
+    return leased;
+}
+
+bool SqliteStore::Heartbeat(const std::string& job_id, const std::string& owner,
+                            std::int64_t lease_ms) {
+    store_detail::CheckLease(owner, lease_ms);
+    std::lock_guard lock(impl_->mutex);
+    SQLite::Statement q(impl_->db,
+                        "UPDATE jobs SET lease_expires_ms = ? WHERE id = ? AND lease_owner = ? AND "
+                        "state = ?");
+    q.bind(1, static_cast<std::int64_t>(NowUnixMs() + lease_ms));
+    q.bind(2, job_id);
+    q.bind(3, owner);
+    q.bind(4, static_cast<int>(v1::RUNNING));
+    return q.exec() > 0;
+}
+
+bool SqliteStore::PutLeasedJob(const v1::Job& job, const std::string& owner) {
+    store_detail::CheckLease(owner, 1);
+    std::lock_guard lock(impl_->mutex);
+    SQLite::Statement q(impl_->db,
+                        "UPDATE jobs SET state = ?, record = ?, "
+                        "lease_owner = CASE WHEN ? THEN NULL ELSE lease_owner END, "
+                        "lease_expires_ms = CASE WHEN ? THEN NULL ELSE lease_expires_ms END "
+                        "WHERE id = ? AND lease_owner = ? AND state = ?");
+    const std::string blob = job.SerializeAsString();
+    const int ends = IsFinal(job.state()) ? 1 : 0;
+    q.bind(1, static_cast<int>(job.state()));
+    BindRecord(q, 2, blob);
+    q.bind(3, ends);
+    q.bind(4, ends);
+    q.bind(5, job.id());
+    q.bind(6, owner);
+    q.bind(7, static_cast<int>(v1::RUNNING));
+    return q.exec() > 0;
+}
+
+std::vector<v1::Job> SqliteStore::RequeueExpired(std::int64_t now_unix_ms, int max_attempts) {
+    store_detail::CheckMaxAttempts(max_attempts);
+    std::lock_guard lock(impl_->mutex);
+    auto& db = impl_->db;
+    WriteTransaction tx(db);
+    struct Expired {
+        v1::Job job;
+        int attempts;
+    };
+    std::vector<Expired> expired;
+    {
+        SQLite::Statement q(db,
+                            "SELECT record, attempts, lease_owner FROM jobs WHERE state = ? AND "
+                            "lease_expires_ms IS NOT NULL AND lease_expires_ms < ? ORDER BY seq");
+        q.bind(1, static_cast<int>(v1::RUNNING));
+        q.bind(2, static_cast<std::int64_t>(now_unix_ms));
+        while (q.executeStep()) {
+            const int attempts = q.getColumn(1).getInt() + 1;
+            expired.push_back({store_detail::ExpiredRecord(ParseJob(q.getColumn(0)), attempts,
+                                                           max_attempts, q.getColumn(2).getString(),
+                                                           now_unix_ms),
+                               attempts});
+        }
+    }
+    std::vector<v1::Job> out;
+    for (Expired& e : expired) {
+        SQLite::Statement q(db,
+                            "UPDATE jobs SET state = ?, attempts = ?, lease_owner = NULL, "
+                            "lease_expires_ms = NULL, record = ? WHERE id = ?");
+        const std::string blob = e.job.SerializeAsString();
+        q.bind(1, static_cast<int>(e.job.state()));
+        q.bind(2, e.attempts);
+        BindRecord(q, 3, blob);
+        q.bind(4, e.job.id());
+        q.exec();
+        out.push_back(std::move(e.job));
+    }
+    tx.Commit();
+    return out;
+}
+
+}  // namespace surfel::worker
