@@ -5,6 +5,7 @@
 #include <cmath>
 #include <cstdio>
 #include <iostream>
+#include <sstream>
 
 #include "surfel/io/cloud_io.h"
 
@@ -37,6 +38,29 @@ ProgressFn MakeProgressBar(const std::string& label, const CommonFlags& flags) {
         std::fflush(stderr);
         return true;
     };
+}
+
+std::vector<double> ParseNumbers(const std::string& text, const std::string& flag, std::size_t count) {
+    const std::string expected = std::to_string(count) + " comma-separated numbers";
+    std::stringstream ss(text);
+    std::string part;
+    std::vector<double> v;
+    while (std::getline(ss, part, ',')) {
+        try {
+            std::size_t used = 0;
+            v.push_back(std::stod(part, &used));
+            if (used != part.size()) throw std::invalid_argument(part);
+        } catch (const std::exception&) {
+            throw UsageError(flag + ": '" + text + "' is not " + expected);
+        }
+    }
+    if (v.size() != count) throw UsageError(flag + ": '" + text + "' is not " + expected);
+    return v;
+}
+
+Vec3d ParseVec3(const std::string& text, const std::string& flag) {
+    const std::vector<double> v = ParseNumbers(text, flag, 3);
+    return {v[0], v[1], v[2]};
 }
 
 nlohmann::json BoundsJson(const BoundingBox& box) {

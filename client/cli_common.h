@@ -6,6 +6,7 @@
 #include <functional>
 #include <nlohmann/json.hpp>
 #include <string>
+#include <vector>
 
 #include "surfel/base/error.h"
 #include "surfel/base/point_cloud.h"
@@ -50,6 +51,12 @@ void PrintReport(const nlohmann::json& report, const CommonFlags& flags);
 /// A progress hook that draws a one-line bar on stderr when it is a terminal (and not quiet).
 ProgressFn MakeProgressBar(const std::string& label, const CommonFlags& flags);
 
+/// Parses `count` comma-separated numbers ("1,0,-2.5") given to `flag`; UsageError naming the
+/// flag otherwise.
+std::vector<double> ParseNumbers(const std::string& text, const std::string& flag, std::size_t count);
+/// Three comma-separated numbers x,y,z.
+Vec3d ParseVec3(const std::string& text, const std::string& flag);
+
 /// JSON for a bounding box: {"min": [..], "max": [..], "diagonal": d}.
 nlohmann::json BoundsJson(const BoundingBox& box);
 
@@ -64,6 +71,7 @@ void RegisterSurfaceCommands(CLI::App& app);
 void RegisterRenderCommands(CLI::App& app);
 void RegisterSimplifyCommands(CLI::App& app);
 void RegisterResampleCommands(CLI::App& app);
+void RegisterBooleanCommands(CLI::App& app);
 void RegisterServiceCommands(CLI::App& app);
 
 }  // namespace surfel::cli

@@ -11,23 +11,6 @@
 namespace surfel::cli {
 namespace {
 
-Vec3d ParseVec3(const std::string& text, const std::string& flag) {
-    std::stringstream ss(text);
-    std::string part;
-    std::vector<double> v;
-    while (std::getline(ss, part, ',')) {
-        try {
-            std::size_t used = 0;
-            v.push_back(std::stod(part, &used));
-            if (used != part.size()) throw std::invalid_argument(part);
-        } catch (const std::exception&) {
-            throw UsageError(flag + ": '" + text + "' is not three comma-separated numbers (x,y,z)");
-        }
-    }
-    if (v.size() != 3) throw UsageError(flag + ": '" + text + "' is not three comma-separated numbers (x,y,z)");
-    return {v[0], v[1], v[2]};
-}
-
 Light ParseLight(const std::string& text) {
     const auto colon = text.find(':');
     if (colon == std::string::npos)

@@ -24,6 +24,7 @@ int main(int argc, char** argv) {
     RegisterRenderCommands(app);
     RegisterSimplifyCommands(app);
     RegisterResampleCommands(app);
+    RegisterBooleanCommands(app);
     RegisterServiceCommands(app);
     // An unknown command word: name it (CLI11 would only say that a subcommand is required).
     if (argc > 1 && argv[1][0] != '-') {

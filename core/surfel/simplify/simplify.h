@@ -115,7 +115,7 @@ struct SimplifyResult {
 SimplifyResult Simplify(const PointCloud& input, const SimplifyOptions& options, const ProgressFn& progress = {});
 
 /// The clusters of a simplification: label[i] is the output point input point i went to.
-/// Exposed for tests and for the resample job.
+/// Exposed for tests.
 struct Clustering {
     std::vector<std::uint32_t> label;
     std::size_t count = 0;

@@ -236,6 +236,49 @@ TEST(ResampleJob, AnInputTooSmallForKeepInputNamesTheField) {
     }
 }
 
+TEST(BooleanJob, ValidationNamesTheField) {
+    v1::JobSpec s;
+    s.mutable_boolean()->set_cloud_id_a("a");
+    EXPECT_EQ(ValidationMessage(s), "boolean.cloud_id_b: is required");
+    s.mutable_boolean()->set_cloud_id_b("b");
+    EXPECT_EQ(ValidationMessage(s).rfind("boolean.op: is required", 0), 0u) << ValidationMessage(s);
+    s.mutable_boolean()->set_op(static_cast<v1::BooleanJob::Op>(11));
+    EXPECT_EQ(ValidationMessage(s), "boolean.op: unknown operation 11");
+    s.mutable_boolean()->set_op(v1::BooleanJob::DIFFERENCE);
+    EXPECT_EQ(ValidationMessage(s), "");
+    v1::Similarity& t = *s.mutable_boolean()->mutable_transform_b();
+    t.set_scale(-2);
+    EXPECT_EQ(ValidationMessage(s), "boolean.transform_b.scale: must lie in 1e-06..1e+06, got -2");
+    t.set_scale(0);  // = 1
+    t.add_rotation(1);
+    EXPECT_EQ(ValidationMessage(s).rfind("boolean.transform_b.rotation: must have 9 numbers", 0), 0u)
+        << ValidationMessage(s);
+    for (int i = 1; i < 9; ++i) t.add_rotation(i == 4 || i == 8 ? 1 : 0);
+    EXPECT_EQ(ValidationMessage(s), "");  // the identity, row-major
+    t.set_rotation(0, 2);                 // not orthonormal
+    EXPECT_EQ(ValidationMessage(s).rfind("boolean.transform_b.rotation: ", 0), 0u) << ValidationMessage(s);
+}
+
+TEST(BooleanJob, TwoInputsOfOneCloudAreLoadedOnce) {
+    v1::JobSpec spec = KindOf([] {
+                           v1::JobSpec s;
+                           s.mutable_boolean();
+                           return s;
+                       }())
+                           .Example();
+    spec.mutable_boolean()->set_cloud_id_a("sphere");
+    spec.mutable_boolean()->set_cloud_id_b("sphere");
+    int loads = 0;
+    const JobOutput out = RunJob(spec, [&](const std::string&) {
+        ++loads;
+        return SmallSphere();
+    });
+    EXPECT_EQ(loads, 1);
+    EXPECT_GT(out.report["curve_samples"].get<int>(), 0) << out.report.dump();
+    const PointCloud result = ParsePly(out.bytes, "result");
+    EXPECT_EQ(result.size(), out.points);
+}
+
 TEST(SimplifyJob, ProducesAPlyWithTheTargetCount) {
     ShapeOptions o;
     o.points = 5000;

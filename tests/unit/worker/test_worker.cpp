@@ -71,7 +71,7 @@ protected:
         dir_ = fs::temp_directory_path() / ("surfel-worker-test-" + std::to_string(::getpid()) + "-" +
                                             ::testing::UnitTest::GetInstance()->current_test_info()->name());
         fs::remove_all(dir_);
-        store_ = std::make_unique<Store>(dir_.string());
+        store_ = std::make_unique<SqliteStore>(dir_.string());
         ShapeOptions o;
         o.points = 3000;
         const std::string bytes = FormatPly(SampleShape(Shape::kSphere, o));

@@ -16,6 +16,7 @@ const JobKind* FindJobKind(v1::JobSpec::JobCase job_case) {
         case v1::JobSpec::kRender: return &RenderKind();
         case v1::JobSpec::kSimplify: return &SimplifyKind();
         case v1::JobSpec::kResample: return &ResampleKind();
+        case v1::JobSpec::kBoolean: return &BooleanKind();
         case v1::JobSpec::JOB_NOT_SET: return nullptr;
     }
     return nullptr;  // a value outside the enum (never produced by protobuf)

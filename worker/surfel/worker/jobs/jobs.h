@@ -9,5 +9,6 @@ namespace surfel::worker {
 const JobKind& RenderKind();    ///< jobs/render_job.cpp
 const JobKind& SimplifyKind();  ///< jobs/simplify_job.cpp
 const JobKind& ResampleKind();  ///< jobs/resample_job.cpp
+const JobKind& BooleanKind();   ///< jobs/boolean_job.cpp
 
 }  // namespace surfel::worker

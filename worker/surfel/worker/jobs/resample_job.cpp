@@ -1,4 +1,5 @@
-// The resample job: particle resampling on the MLS surface (core/surfel/resample).
+// The resample job: particle resampling, MLS smoothing and densification by splitting on the
+// MLS surface (core/surfel/resample).
 
 #include "surfel/base/error.h"
 #include "surfel/io/ply.h"
@@ -18,6 +19,8 @@ ResampleOptions ToResampleOptions(const v1::ResampleJob& job) {
     switch (job.method()) {
         case v1::ResampleJob::METHOD_UNSPECIFIED: o.method = defaults.method; break;
         case v1::ResampleJob::PARTICLE: o.method = ResampleMethod::kParticle; break;
+        case v1::ResampleJob::MLS: o.method = ResampleMethod::kMls; break;
+        case v1::ResampleJob::SPLIT: o.method = ResampleMethod::kSplit; break;
         default:
             throw Error(ErrorCode::kInvalidArgument, "resample.method: unknown method " + std::to_string(job.method()));
     }
@@ -28,6 +31,10 @@ ResampleOptions ToResampleOptions(const v1::ResampleJob& job) {
     if (job.seed()) o.seed = job.seed();
     if (job.iterations()) o.iterations = job.iterations();
     o.measure_error = !job.no_error_report();
+    if (!v1::ResampleJob::Degree_IsValid(job.mls_degree()))
+        throw Error(ErrorCode::kInvalidArgument, "resample.mls_degree: unknown degree " + std::to_string(job.mls_degree()));
+    if (job.mls_degree() != v1::ResampleJob::DEGREE_UNSPECIFIED) o.mls_degree = static_cast<int>(job.mls_degree()) - 1;
+    o.mls_h = job.mls_h();
     return o;
 }
 
@@ -42,6 +49,15 @@ nlohmann::json ResampleReportJson(const ResampleReport& r) {
                         {"spacing_cv", r.spacing_cv},
                         {"time_ms", r.time_ms},
                         {"normals_estimated", r.normals_estimated}};
+    if (r.method == ResampleMethodName(ResampleMethod::kMls)) {
+        j["mls_h"] = r.mls_h;
+        j["noise"] = r.noise;
+        j["mls_failed"] = r.mls_failed;
+    }
+    if (r.method == ResampleMethodName(ResampleMethod::kSplit)) {
+        j["splits"] = r.splits;
+        j["max_spacing"] = r.max_spacing;
+    }
     if (r.error) j["error"] = SurfaceErrorJson(*r.error, r.error_time_ms);
     return j;
 }
