@@ -1,6 +1,6 @@
 #include "download_reactor.h"
 
-#include <optional>
+#include <string>
 
 #include "chunk_reader.h"
 #include "surfel/worker/status.h"
@@ -17,25 +17,15 @@ using worker::CurrentExceptionStatus;
 class DownloadReactor final : public grpc::ServerWriteReactor<v1::DataChunk> {
 public:
     DownloadReactor(SurfelService& service, const v1::DownloadRequest& request) : service_(service) {
-        std::optional<v1::Job> job;
+        std::string path;
         try {
-            job = service_.jobs().Get(request.job_id());
+            path = service_.ops().Result(request.job_id()).path;
         } catch (...) {
             Finish(CurrentExceptionStatus());
             return;
         }
-        if (!job) {
-            Finish(grpc::Status(grpc::StatusCode::NOT_FOUND, "job " + request.job_id() + " not found"));
-            return;
-        }
-        if (job->state() != v1::SUCCEEDED) {
-            Finish(grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
-                                "job " + request.job_id() + " is " + v1::JobState_Name(job->state()) +
-                                    "; results exist only for SUCCEEDED jobs"));
-            return;
-        }
-        if (!reader_.Open(service_.store().ResultPath(job->id()))) {
-            Finish(grpc::Status(grpc::StatusCode::NOT_FOUND, "result of job " + job->id() + " is gone"));
+        if (!reader_.Open(path)) {
+            Finish(grpc::Status(grpc::StatusCode::NOT_FOUND, "result of job " + request.job_id() + " is gone"));
             return;
         }
         Next();

@@ -1,4 +1,5 @@
-// surfel-server: the gRPC service with its worker pool, SQLite store and metrics.
+// surfel-server: the gRPC service with its worker pool, SQLite store and metrics, and (with
+// --http) the HTTP/JSON front and the web page.
 #include <grpcpp/ext/proto_server_reflection_plugin.h>
 #include <grpcpp/health_check_service_interface.h>
 #include <grpcpp/server_builder.h>
@@ -8,14 +9,38 @@
 
 #include <CLI/CLI.hpp>
 #include <chrono>
+#include <filesystem>
 #include <fstream>
+#include <memory>
+#include <sstream>
 #include <thread>
 
+#include "http_front.h"
 #include "metrics.h"
+#include "operations.h"
 #include "service.h"
 #include "surfel/base/error.h"
 
 namespace {
+
+// The page's files: <exe>/../share/surfel/web when installed, else the source tree's web/.
+std::string DefaultWebRoot() {
+    namespace fs = std::filesystem;
+    std::error_code ec;
+    const fs::path exe = fs::read_symlink("/proc/self/exe", ec);
+    if (!ec) {
+        const fs::path installed = exe.parent_path().parent_path() / "share" / "surfel" / "web";
+        if (fs::is_directory(installed, ec)) return installed.string();
+    }
+    return SURFEL_SOURCE_WEB_DIR;
+}
+
+// Writes `port` to `path` atomically (a reader never sees a partial file).
+void WritePortFile(const std::string& path, int port) {
+    const std::string tmp = path + ".tmp";
+    std::ofstream(tmp) << port << "\n";
+    std::rename(tmp.c_str(), path.c_str());
+}
 
 struct Flags {
     std::string host = "127.0.0.1";
@@ -32,6 +57,12 @@ struct Flags {
     double grace_s = 10;
     std::string log_level = "info";
     bool json_logs = false;
+    std::string http;
+    std::string http_port_file;
+    std::string http_cors_origins;
+    std::string web_root;
+    std::size_t http_threads = 16;
+    double http_keepalive_s = 15;
 };
 
 }  // namespace
@@ -71,11 +102,28 @@ int main(int argc, char** argv) {
         ->default_val("info")
         ->check(CLI::IsMember({"trace", "debug", "info", "warn", "error"}));
     app.add_flag("--json-logs", f.json_logs, "Log one JSON object per line");
+    app.add_option("--http", f.http,
+                   "Serve the HTTP/JSON API and the web page at http://ADDR/ (HOST:PORT, port 0 picks one); "
+                   "off unless given");
+    app.add_option("--http-port-file", f.http_port_file, "Write the bound HTTP port to this file once serving");
+    app.add_option("--http-cors-origins", f.http_cors_origins,
+                   "Comma-separated origins allowed to call the HTTP API from other sites (\"*\" = any)");
+    app.add_option("--web-root", f.web_root, "The web page's files (default: <exe>/../share/surfel/web, else the "
+                                             "source tree's web/)");
+    app.add_option("--http-threads", f.http_threads,
+                   "HTTP connection threads; each open connection, event streams included, holds one")
+        ->default_val(16)
+        ->check(CLI::Range(2, 4096));
+    app.add_option("--http-keepalive-s", f.http_keepalive_s, "Seconds between comment lines on an idle event stream")
+        ->default_val(15)
+        ->check(CLI::Range(0.05, 3600.0));
     app.footer(
         "Jobs persist in DATA_DIR: after a crash or restart, queued and running jobs run again.\n"
         "SIGTERM/SIGINT: stop accepting, give running jobs --grace seconds, requeue the rest, exit 0.\n"
         "Health: grpc.health.v1.Health (\"\" and \"surfel.v1.Surfel\"); server reflection is on.\n"
-        "Example:\n  surfel-server --port 50051 --data-dir /var/lib/surfel --metrics 127.0.0.1:9464");
+        "HTTP: --http HOST:PORT serves the same API as JSON (/v1/clouds, /v1/jobs, events as SSE) and the web\n"
+        "page at / (docs/http.md).\n"
+        "Example:\n  surfel-server --port 50051 --data-dir /var/lib/surfel --metrics 127.0.0.1:9464 --http 127.0.0.1:8080");
     CLI11_PARSE(app, argc, argv);
 
     auto logger = spdlog::stderr_color_mt("surfel");
@@ -94,7 +142,8 @@ int main(int argc, char** argv) {
     try {
         server::Metrics metrics;
         if (!f.metrics.empty()) metrics.Serve(f.metrics);
-        worker::Store store(f.data_dir);
+        std::unique_ptr<worker::Store> store_ptr = worker::OpenStore("", f.data_dir);  // SQLite in DATA_DIR
+        worker::Store& store = *store_ptr;
         worker::ManagerOptions mo;
         mo.workers = f.workers;
         mo.max_queued = f.max_queued;
@@ -107,7 +156,8 @@ int main(int argc, char** argv) {
         // Declared before the service and the server: it outlives both, and runs its queue dry
         // while server->Shutdown waits for the upload calls its tasks finish.
         server::Executor ingest(f.ingest_threads, f.ingest_queue);
-        server::SurfelService service(store, jobs, metrics, ingest, limits);
+        server::Operations ops(store, jobs, metrics, ingest, limits);
+        server::SurfelService service(ops);
 
         grpc::EnableDefaultHealthCheckService(true);
         grpc::reflection::InitProtoReflectionServerBuilderPlugin();
@@ -122,6 +172,32 @@ int main(int argc, char** argv) {
             return 1;
         }
         server->GetHealthCheckService()->SetServingStatus("surfel.v1.Surfel", true);
+
+        std::unique_ptr<server::HttpFront> http;
+        if (!f.http.empty()) {
+            server::HttpOptions ho;
+            const auto colon = f.http.rfind(':');
+            if (colon == std::string::npos)
+                throw Error(ErrorCode::kInvalidArgument, "--http: expected HOST:PORT, got " + f.http);
+            ho.host = f.http.substr(0, colon);
+            try {
+                ho.port = std::stoi(f.http.substr(colon + 1));
+            } catch (const std::exception&) {
+                throw Error(ErrorCode::kInvalidArgument, "--http: bad port in " + f.http);
+            }
+            std::stringstream origins(f.http_cors_origins);
+            for (std::string o; std::getline(origins, o, ',');)
+                if (!o.empty()) ho.cors_origins.push_back(o);
+            ho.web_root = f.web_root.empty() ? DefaultWebRoot() : f.web_root;
+            ho.threads = f.http_threads;
+            ho.sse_keepalive_ms = static_cast<int>(f.http_keepalive_s * 1000);
+            http = std::make_unique<server::HttpFront>(ops, ho);
+            http->Start();
+            spdlog::info("HTTP/JSON API and web page on http://{}:{}/ (page from {})", ho.host, http->port(),
+                         ho.web_root);
+            std::printf("http on http://%s:%d/\n", ho.host.c_str(), http->port());
+            if (!f.http_port_file.empty()) WritePortFile(f.http_port_file, http->port());
+        }
         jobs.Start();
         spdlog::info("surfel-server listening on {}:{} (data {}, {} workers, {} ingest threads{}{})", f.host,
                      bound_port, f.data_dir, mo.workers ? mo.workers : std::thread::hardware_concurrency(),
@@ -129,11 +205,7 @@ int main(int argc, char** argv) {
                      f.metrics.empty() ? "" : ", metrics on http://", f.metrics.empty() ? "" : f.metrics + "/metrics");
         std::printf("listening on %s:%d\n", f.host.c_str(), bound_port);
         std::fflush(stdout);
-        if (!f.port_file.empty()) {
-            const std::string tmp = f.port_file + ".tmp";
-            std::ofstream(tmp) << bound_port << "\n";
-            std::rename(tmp.c_str(), f.port_file.c_str());
-        }
+        if (!f.port_file.empty()) WritePortFile(f.port_file, bound_port);
 
         // Queue depth gauge, refreshed while serving.
         std::atomic<bool> done{false};
@@ -148,6 +220,7 @@ int main(int argc, char** argv) {
         sigwait(&signals, &sig);
         spdlog::info("{}: shutting down (grace {} s)", sig == SIGTERM ? "SIGTERM" : "SIGINT", f.grace_s);
         server->GetHealthCheckService()->SetServingStatus(false);
+        if (http) http->Stop();
         jobs.Shutdown(static_cast<std::int64_t>(f.grace_s * 1000));
         server->Shutdown(std::chrono::system_clock::now() + std::chrono::seconds(2));
         done = true;

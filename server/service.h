@@ -8,33 +8,17 @@
 /// the ingest Executor. What stays on gRPC's threads is bounded and short: one chunk written or
 /// read (at most max_chunk_bytes / download_chunk_bytes) and indexed SQLite lookups and updates.
 
-#include <cstdint>
-#include <mutex>
-#include <set>
-#include <string>
-
-#include "executor.h"
-#include "metrics.h"
+#include "operations.h"
 #include "surfel/v1/surfel.grpc.pb.h"
-#include "surfel/worker/job_manager.h"
-#include "surfel/worker/store.h"
 
 namespace surfel::server {
 
-/// Per-call limits of the service.
-struct ServiceLimits {
-    std::uint64_t max_upload_bytes = 2ull << 30;  ///< Larger uploads -> RESOURCE_EXHAUSTED.
-    std::uint64_t max_points = 50'000'000;        ///< Clouds with more points -> RESOURCE_EXHAUSTED.
-    std::size_t max_chunk_bytes = 1 << 20;        ///< One UploadRequest's data at most.
-    std::size_t download_chunk_bytes = 256 << 10; ///< Result chunks in Watch and Download.
-};
-
-/// The service. Every reference must outlive it; `ingest` must also outlive the grpc::Server that
-/// runs it (its tasks finish upload calls, and the server's Shutdown waits for those).
+/// The gRPC front: each call translated into Operations (operations.h). `ops` must outlive it, and
+/// its ingest Executor must also outlive the grpc::Server that runs it (its tasks finish upload
+/// calls, and the server's Shutdown waits for those).
 class SurfelService final : public v1::Surfel::CallbackService {
 public:
-    SurfelService(worker::Store& store, worker::JobManager& jobs, Metrics& metrics, Executor& ingest,
-                  ServiceLimits limits);
+    explicit SurfelService(Operations& ops) : ops_(ops) {}
 
     grpc::ServerReadReactor<v1::UploadRequest>* Upload(grpc::CallbackServerContext* ctx, v1::Cloud* response) override;
     grpc::ServerUnaryReactor* QueryUpload(grpc::CallbackServerContext* ctx, const v1::QueryUploadRequest* req,
@@ -57,24 +41,16 @@ public:
                                        v1::ListJobsResponse* resp) override;
 
     /// Used by the reactors.
-    worker::Store& store() { return store_; }
-    worker::JobManager& jobs() { return jobs_; }
-    Metrics& metrics() { return metrics_; }
+    Operations& ops() { return ops_; }
+    worker::Store& store() { return ops_.store(); }
+    worker::JobManager& jobs() { return ops_.jobs(); }
+    Metrics& metrics() { return ops_.metrics(); }
     /// Where uploads are hashed (on resume) and parsed.
-    Executor& ingest() { return ingest_; }
-    const ServiceLimits& limits() const { return limits_; }
-    /// Claims an upload id for one call at a time; false when another call holds it.
-    bool ClaimUpload(const std::string& id);
-    void ReleaseUpload(const std::string& id);
+    Executor& ingest() { return ops_.ingest(); }
+    const ServiceLimits& limits() const { return ops_.limits(); }
 
 private:
-    worker::Store& store_;
-    worker::JobManager& jobs_;
-    Metrics& metrics_;
-    Executor& ingest_;
-    ServiceLimits limits_;
-    std::mutex uploads_mutex_;
-    std::set<std::string> active_uploads_;
+    Operations& ops_;
 };
 
 }  // namespace surfel::server

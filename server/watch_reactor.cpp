@@ -53,19 +53,7 @@ public:
         subscribed_ = !worker::IsFinal(job->state());
         if (!subscribed_) {  // already final: its state and its final event
             std::lock_guard lock(sink_->mutex);
-            v1::JobEvent first;
-            first.set_job_id(job->id());
-            *first.mutable_state() = *job;
-            Push(first);
-            v1::JobEvent last;
-            last.set_job_id(job->id());
-            if (job->state() == v1::SUCCEEDED) {
-                *last.mutable_finished() = job->result();
-            } else {
-                last.mutable_failed()->set_code(job->status_code());
-                last.mutable_failed()->set_message(job->status_message());
-            }
-            Push(last);
+            for (const v1::JobEvent& e : Operations::FinalEvents(*job)) Push(e);
         }
     }
 

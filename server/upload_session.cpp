@@ -1,0 +1,141 @@
+#include "upload_session.h"
+
+#include <spdlog/spdlog.h>
+
+#include <algorithm>
+#include <cctype>
+#include <filesystem>
+
+#include "surfel/base/error.h"
+#include "surfel/io/cloud_io.h"
+#include "surfel/io/file_bytes.h"
+#include "surfel/worker/job_kind.h"
+
+namespace surfel::server {
+namespace fs = std::filesystem;
+
+void CheckUploadId(const std::string& id) {
+    const bool ok =
+        !id.empty() && id.size() <= 128 && std::all_of(id.begin(), id.end(), [](char c) {
+            return std::isalnum(static_cast<unsigned char>(c)) || c == '_' || c == '-';
+        });
+    if (!ok) throw Error(ErrorCode::kInvalidArgument, "upload_id: must match [A-Za-z0-9_-]{1,128}");
+}
+
+UploadSession::UploadSession(Operations& ops, std::string upload_id, const std::string& filename)
+    : ops_(ops), id_(std::move(upload_id)) {
+    CheckUploadId(id_);
+    if (!ops_.ClaimUpload(id_))
+        throw Error(ErrorCode::kFailedPrecondition,
+                    "upload " + id_ + " is in progress on another call");
+    claimed_ = true;
+    filename_ = filename.empty() ? id_ : fs::path(filename).filename().string();
+    if (filename_.empty()) filename_ = id_;
+    path_ = ops_.store().UploadPath(id_);
+    std::error_code ec;
+    committed_ = fs::exists(path_, ec) ? fs::file_size(path_, ec) : 0;
+    hashed_ = committed_ == 0;
+    out_.open(path_, std::ios::binary | std::ios::app);
+    if (!out_) throw Error(ErrorCode::kInternal, "cannot open " + path_);
+}
+
+UploadSession::~UploadSession() {
+    if (claimed_) ops_.ReleaseUpload(id_);
+}
+
+std::string UploadSession::ResumeHint() const {
+    return std::to_string(committed_) + " bytes committed; resume at write_offset " +
+           std::to_string(committed_) + " and end with finish_write";
+}
+
+void UploadSession::CheckFits(std::uint64_t more) {
+    const std::uint64_t limit = ops_.limits().max_upload_bytes;
+    if (committed_ + more > limit) {
+        Discard();
+        throw Error(ErrorCode::kResourceExhausted,
+                    "upload " + id_ + " exceeds the limit of " + std::to_string(limit) + " bytes");
+    }
+}
+
+void UploadSession::HashCommitted() {
+    std::ifstream in(path_, std::ios::binary);
+    if (!in) throw Error(ErrorCode::kInternal, "cannot read " + path_);
+    std::string buf(1 << 20, '\0');
+    std::uint64_t hashed = 0;
+    while (in) {
+        in.read(buf.data(), static_cast<std::streamsize>(buf.size()));
+        const auto n = static_cast<std::size_t>(in.gcount());
+        hash_.Update(std::string_view(buf.data(), n));
+        hashed += n;
+    }
+    if (hashed != committed_)
+        throw Error(ErrorCode::kInternal, "reading " + path_ + ": " + std::to_string(hashed) +
+                                              " of " + std::to_string(committed_) + " bytes");
+    hashed_ = true;
+}
+
+void UploadSession::Append(std::string_view data) {
+    SURFEL_CHECK(hashed_, "Append before HashCommitted on upload " << id_);
+    CheckFits(data.size());
+    out_.write(data.data(), static_cast<std::streamsize>(data.size()));
+    out_.flush();
+    if (!out_) throw Error(ErrorCode::kInternal, "writing " + path_ + " failed");
+    hash_.Update(data);
+    committed_ += data.size();
+    ops_.metrics().AddBytesIn(data.size());
+}
+
+v1::Cloud UploadSession::Finish() {
+    SURFEL_CHECK(hashed_, "Finish before HashCommitted on upload " << id_);
+    out_.close();
+    const std::string id = hash_.FinishHex();
+    if (auto existing = ops_.store().FindCloud(id)) {
+        const std::uint64_t size = committed_;
+        Discard();
+        existing->set_deduplicated(true);
+        spdlog::info("upload {}: {} bytes, already stored as cloud {}", id_, size, id);
+        ops_.metrics().CountUpload(true);
+        return *existing;
+    }
+    std::string bytes;
+    PointCloud cloud;
+    try {
+        bytes = ReadFileBytes(path_);
+        PlyReadOptions read_limits;
+        read_limits.max_points = ops_.limits().max_points;
+        cloud = ParsePointCloud(bytes, filename_, read_limits);
+        if (cloud.empty())
+            throw Error(ErrorCode::kInvalidArgument, filename_ + ": the cloud has no points");
+    } catch (...) {
+        Discard();
+        ops_.metrics().CountUpload(false);
+        throw;
+    }
+    std::error_code ec;
+    fs::rename(path_, ops_.store().CloudPath(id), ec);
+    if (ec) throw Error(ErrorCode::kInternal, "storing cloud " + id + ": " + ec.message());
+    committed_ = 0;
+    v1::Cloud c;
+    c.set_id(id);
+    c.set_points(cloud.size());
+    const BoundingBox box = cloud.Bounds();
+    *c.mutable_bounds_min() = worker::ToProto(box.min.cast<double>());
+    *c.mutable_bounds_max() = worker::ToProto(box.max.cast<double>());
+    for (const std::string& a : cloud.AttributeNames()) c.add_attributes(a);
+    c.set_size_bytes(bytes.size());
+    c.set_format(std::string(SniffCloudFormat(bytes)));
+    ops_.store().PutCloud(c);
+    ops_.metrics().CountUpload(true);
+    spdlog::info("upload {}: stored cloud {} ({} points, {} bytes)", id_, id, cloud.size(),
+                 bytes.size());
+    return c;
+}
+
+void UploadSession::Discard() {
+    out_.close();
+    std::error_code ec;
+    fs::remove(path_, ec);
+    committed_ = 0;
+}
+
+}  // namespace surfel::server

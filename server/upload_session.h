@@ -1,0 +1,66 @@
+#pragma once
+/// \file
+/// One upload, free of any transport: bytes appended to <data>/uploads/<id>.part and hashed while
+/// written, then (Finish) deduplicated by SHA-256, parsed and validated, moved into the cloud
+/// store and recorded. The gRPC Upload reactor and the HTTP POST /v1/clouds handler both drive
+/// one of these; neither knows how a cloud is stored.
+
+#include <cstdint>
+#include <fstream>
+#include <string>
+#include <string_view>
+
+#include "operations.h"
+#include "surfel/worker/sha256.h"
+
+namespace surfel::server {
+
+/// Throws Error(kInvalidArgument) unless `id` matches [A-Za-z0-9_-]{1,128} (upload ids name files).
+void CheckUploadId(const std::string& id);
+
+/// Not thread-safe: one thread at a time (the caller hands it between threads).
+class UploadSession {
+  public:
+    /// Checks and claims `upload_id` (kFailedPrecondition while another call holds it) and opens
+    /// its part file for appending; bytes committed by an earlier call are kept (a resume).
+    /// `filename` (its extension picks the parser for non-PLY content) defaults to the id.
+    UploadSession(Operations& ops, std::string upload_id, const std::string& filename);
+    /// Releases the claim. The part file stays for a resume unless Finish or Discard removed it.
+    ~UploadSession();
+    UploadSession(const UploadSession&) = delete;
+    UploadSession& operator=(const UploadSession&) = delete;
+
+    const std::string& id() const { return id_; }
+    /// Bytes in the part file.
+    std::uint64_t committed() const { return committed_; }
+    /// False while the bytes of a resumed upload are not hashed yet (HashCommitted does it).
+    bool hashed() const { return hashed_; }
+    /// A hint for a client whose call broke off: where to resume.
+    std::string ResumeHint() const;
+
+    /// Throws kResourceExhausted, and discards the part file, when `more` bytes would take the
+    /// upload past limits().max_upload_bytes.
+    void CheckFits(std::uint64_t more);
+    /// Reads and hashes the committed bytes of a resumed upload (slow: up to max_upload_bytes).
+    void HashCommitted();
+    /// Appends and flushes `data` (after CheckFits). Needs hashed().
+    void Append(std::string_view data);
+    /// The whole file is here: a cloud stored before is returned at once (deduplicated); otherwise
+    /// the bytes are parsed (kInvalidArgument naming line/element/field, kResourceExhausted over
+    /// max_points), moved to the content-addressed store and recorded. Slow: run it off a
+    /// transport's threads. The part file is gone afterwards, whatever the outcome.
+    v1::Cloud Finish();
+    /// Removes the part file.
+    void Discard();
+
+  private:
+    Operations& ops_;
+    std::string id_, filename_, path_;
+    bool claimed_ = false;
+    bool hashed_ = false;  // hash_ covers the committed bytes
+    std::uint64_t committed_ = 0;
+    std::ofstream out_;
+    worker::Sha256 hash_;
+};
+
+}  // namespace surfel::server
