@@ -1,10 +1,12 @@
 # Surfel: the two entry points of the README.
-#   make demo   install what is missing, build, run the main job on a sample cloud (results in out/)
+#   make demo   install what is missing, build, run the main job on a sample cloud (results in out/);
+#               SERVE=1 keeps the server and its web page up until Ctrl-C
 #   make test   install what is missing, build, run every test (ctest) and the PLY fuzzer for 60 s
 BUILD ?= build
 FUZZ_BUILD ?= build-fuzz
 FUZZ_SECONDS ?= 60
 CMAKE_FLAGS ?=
+SERVE ?= 0
 
 .PHONY: all deps build demo test unit-test fuzz bench clean
 all: build
@@ -17,7 +19,7 @@ build: deps
 	@cmake --build $(BUILD) -j $$(nproc)
 
 demo: build
-	@bash scripts/demo $(BUILD)/bin out
+	@SERVE=$(SERVE) bash scripts/demo $(BUILD)/bin out
 
 unit-test: build
 	@ctest --test-dir $(BUILD) --output-on-failure -j $$(nproc)

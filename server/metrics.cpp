@@ -1,6 +1,8 @@
 #include "metrics.h"
 
 #include "surfel/base/error.h"
+#include "surfel/worker/job_kind.h"
+#include "surfel/worker/job_state.h"
 
 namespace surfel::server {
 
@@ -23,6 +25,9 @@ Metrics::Metrics() : registry_(std::make_shared<prometheus::Registry>()) {
     bytes_in_ = &bytes.Add({{"direction", "in"}});
     bytes_out_ = &bytes.Add({{"direction", "out"}});
     uploads_ = &prometheus::BuildCounter().Name("surfel_uploads_total").Help("Finished uploads by outcome").Register(*registry_);
+    // Every kind of the job table has its series from the start (0 until it runs), so a
+    // dashboard sees a kind that never ran and a rate() has a starting point.
+    for (const worker::JobKind* kind : worker::JobKinds()) running_->Add({{"type", std::string(kind->Name())}});
 }
 
 void Metrics::Serve(const std::string& address) {
@@ -40,8 +45,7 @@ void Metrics::OnTransition(const v1::Job& job, v1::JobState from) {
     auto& running = running_->Add({{"type", job.type()}});
     if (job.state() == v1::RUNNING) running.Increment();
     if (from == v1::RUNNING) running.Decrement();
-    const bool final = job.state() == v1::SUCCEEDED || job.state() == v1::FAILED || job.state() == v1::CANCELLED;
-    if (final && job.started_unix_ms() > 0) {
+    if (worker::IsFinal(job.state()) && job.started_unix_ms() > 0) {
         static const prometheus::Histogram::BucketBoundaries kBuckets{0.01, 0.03, 0.1, 0.3, 1, 3, 10, 30, 100, 300};
         duration_->Add({{"type", job.type()}, {"state", state}}, kBuckets)
             .Observe(static_cast<double>(job.finished_unix_ms() - job.started_unix_ms()) / 1000.0);

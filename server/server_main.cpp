@@ -20,6 +20,7 @@
 #include "operations.h"
 #include "service.h"
 #include "surfel/base/error.h"
+#include "surfel/worker/job_kind.h"
 
 namespace {
 
@@ -69,7 +70,7 @@ struct Flags {
 
 int main(int argc, char** argv) {
     using namespace surfel;
-    CLI::App app{"surfel-server: point-cloud jobs (render, simplify) over gRPC (surfel.v1.Surfel)"};
+    CLI::App app{"surfel-server: point-cloud jobs (" + worker::JobKindNames() + ") over gRPC (surfel.v1.Surfel)"};
     Flags f;
     app.add_option("--host", f.host, "Address to listen on (0.0.0.0 for every interface)")->default_val("127.0.0.1");
     app.add_option("-p,--port", f.port, "gRPC port; 0 picks a free one (printed, and written to --port-file)")
