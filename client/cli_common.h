@@ -3,6 +3,7 @@
 /// Shared pieces of the `surfel` command-line tool: the command registry, reports, exit codes.
 
 #include <CLI/CLI.hpp>
+#include <cctype>
 #include <functional>
 #include <nlohmann/json.hpp>
 #include <string>
@@ -34,6 +35,18 @@ auto UsageOnBadValue(const std::string& flag, Fn&& fn) -> decltype(fn()) {
         if (e.code() != ErrorCode::kInvalidArgument) throw;
         throw UsageError(flag + ": " + e.what());
     }
+}
+
+/// The proto enum value a flag's name stands for: "reverse-difference" -> REVERSE_DIFFERENCE, by
+/// the enum's generated `Parse` (e.g. v1::SimplifyJob::Method_Parse). UsageError naming the flag
+/// when there is none.
+template <typename Enum>
+Enum ParseProtoEnum(const std::string& flag, const std::string& name, bool (*parse)(const std::string&, Enum*)) {
+    std::string upper = name;
+    for (char& c : upper) c = c == '-' ? '_' : static_cast<char>(std::toupper(static_cast<unsigned char>(c)));
+    Enum value{};
+    if (!parse(upper, &value)) throw UsageError(flag + ": unknown value '" + name + "'");
+    return value;
 }
 
 /// Options every job subcommand shares.

@@ -32,11 +32,7 @@ void RunBoolean(BooleanArgs& a) {
         throw UsageError("--output: a boolean result is PLY (its creases are vertex properties XYZ cannot hold)");
     v1::JobSpec spec;
     v1::BooleanJob& job = *spec.mutable_boolean();
-    std::string upper = a.op;
-    for (char& c : upper) c = c == '-' ? '_' : static_cast<char>(std::toupper(static_cast<unsigned char>(c)));
-    v1::BooleanJob::Op op = v1::BooleanJob::OP_UNSPECIFIED;
-    if (!v1::BooleanJob::Op_Parse(upper, &op)) throw UsageError("--op: unknown operation '" + a.op + "'");
-    job.set_op(op);
+    job.set_op(ParseProtoEnum("--op", a.op, &v1::BooleanJob::Op_Parse));
     v1::Similarity& t = *job.mutable_transform_b();
     if (!a.translate.empty()) *t.mutable_translation() = worker::ToProto(ParseVec3(a.translate, "--translate"));
     if (!a.rotate.empty()) {

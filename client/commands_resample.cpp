@@ -36,11 +36,7 @@ void RunResample(ResampleArgs& a) {
     if (!mls && (a.target == 0) == (a.spacing == 0)) throw UsageError("give --target N or --spacing S (one of them)");
     v1::JobSpec spec;
     v1::ResampleJob& r = *spec.mutable_resample();
-    std::string upper = a.method;
-    for (char& c : upper) c = static_cast<char>(std::toupper(static_cast<unsigned char>(c)));
-    v1::ResampleJob::Method method = v1::ResampleJob::METHOD_UNSPECIFIED;
-    if (!v1::ResampleJob::Method_Parse(upper, &method)) throw UsageError("--method: unknown method '" + a.method + "'");
-    r.set_method(method);
+    r.set_method(ParseProtoEnum("--method", a.method, &v1::ResampleJob::Method_Parse));
     r.set_target(a.target);
     r.set_spacing(a.spacing);
     r.set_adaptive(a.adaptive);

@@ -96,12 +96,8 @@ void RegisterServiceCommands(CLI::App& app) {
         sub->footer("Example:\n  surfel jobs --server localhost:50051 --state running");
         sub->callback([a] {
             client::ServiceClient c(a->server);
-            v1::JobState state = v1::JOB_STATE_UNSPECIFIED;
-            if (!a->state.empty()) {
-                std::string upper = a->state;
-                for (char& ch : upper) ch = static_cast<char>(std::toupper(static_cast<unsigned char>(ch)));
-                v1::JobState_Parse(upper, &state);
-            }
+            const v1::JobState state = a->state.empty() ? v1::JOB_STATE_UNSPECIFIED
+                                                        : ParseProtoEnum("--state", a->state, &v1::JobState_Parse);
             const auto jobs = c.ListJobs(a->limit, state);
             if (a->flags.json) {
                 nlohmann::json arr = nlohmann::json::array();

@@ -29,11 +29,7 @@ void RunSimplify(SimplifyArgs& a) {
     const bool xyz = UsageOnBadValue("--output", [&] { return FormatFromPath(a.output); }) == CloudFileFormat::kXyz;
     v1::JobSpec spec;
     v1::SimplifyJob& s = *spec.mutable_simplify();
-    std::string upper = a.method;
-    for (char& c : upper) c = static_cast<char>(std::toupper(static_cast<unsigned char>(c)));
-    v1::SimplifyJob::Method method = v1::SimplifyJob::HIERARCHICAL;
-    if (!v1::SimplifyJob::Method_Parse(upper, &method)) throw UsageError("--method: unknown method '" + a.method + "'");
-    s.set_method(method);
+    s.set_method(ParseProtoEnum("--method", a.method, &v1::SimplifyJob::Method_Parse));
     s.set_target(a.target);
     s.set_error(a.error);
     s.set_adaptive(a.adaptive);

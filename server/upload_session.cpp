@@ -32,8 +32,7 @@ UploadSession::UploadSession(Operations& ops, std::string upload_id, const std::
     filename_ = filename.empty() ? id_ : fs::path(filename).filename().string();
     if (filename_.empty()) filename_ = id_;
     path_ = ops_.store().UploadPath(id_);
-    std::error_code ec;
-    committed_ = fs::exists(path_, ec) ? fs::file_size(path_, ec) : 0;
+    committed_ = static_cast<std::uint64_t>(ops_.CommittedUploadBytes(id_));
     hashed_ = committed_ == 0;
     out_.open(path_, std::ios::binary | std::ios::app);
     if (!out_) throw Error(ErrorCode::kInternal, "cannot open " + path_);

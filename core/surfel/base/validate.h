@@ -8,6 +8,7 @@
 #include <cmath>
 #include <sstream>
 #include <string>
+#include <string_view>
 
 #include "surfel/base/error.h"
 #include "surfel/base/point_cloud.h"
@@ -54,6 +55,21 @@ inline void CheckFinite(const std::string& field, double value) {
 /// Accepts a vector whose three components are finite; otherwise throws "<field>: must be finite".
 inline void CheckFinite(const std::string& field, const Vec3d& v) {
     if (!std::isfinite(v.x()) || !std::isfinite(v.y()) || !std::isfinite(v.z())) InvalidField(field, "must be finite");
+}
+
+/// Runs `fn` (an Options::Validate(), or work whose errors name fields) and rethrows an
+/// Error(kInvalidArgument) from it with `prefix` + "." before its message: nested Options and the
+/// worker's adapters add where a field sits ("degree: ..." -> "mls.degree: ...",
+/// "width: ..." -> "render.width: ..."). A message that starts with `prefix` + ":" is kept.
+template <typename Fn>
+void WithFieldPrefix(const std::string& prefix, Fn&& fn) {
+    try {
+        fn();
+    } catch (const Error& e) {
+        const std::string_view what = e.what();
+        if (e.code() != ErrorCode::kInvalidArgument || what.rfind(prefix + ":", 0) == 0) throw;
+        throw Error(e.code(), prefix + "." + e.what());
+    }
 }
 
 }  // namespace surfel

@@ -60,25 +60,10 @@ void Similarity::Validate(const std::string& prefix) const {
     CheckRange(prefix + ".scale", scale, kMinBooleanScale, kMaxBooleanScale);
 }
 
-namespace {
-
-// Re-throws an options error with its field prefixed ("degree: ..." -> "mls.degree: ...").
-template <typename F>
-void ValidatePrefixed(const std::string& prefix, F&& validate) {
-    try {
-        validate();
-    } catch (const Error& e) {
-        if (e.code() != ErrorCode::kInvalidArgument) throw;
-        throw Error(ErrorCode::kInvalidArgument, prefix + "." + e.what());
-    }
-}
-
-}  // namespace
-
 void BooleanOptions::Validate() const {
     transform.Validate("transform");
-    ValidatePrefixed("mls", [&] { mls.Validate(); });
-    ValidatePrefixed("normals", [&] { normals.Validate(); });
+    WithFieldPrefix("mls", [&] { mls.Validate(); });
+    WithFieldPrefix("normals", [&] { normals.Validate(); });
     CheckRange("curve_band", curve_band, kMinCurveBand, kMaxCurveBand);
     CheckRange("max_newton_iterations", max_newton_iterations, kMinNewtonIterations,
                kMaxNewtonIterations);
@@ -742,23 +727,8 @@ BooleanResult Boolean(const PointCloud& a, const PointCloud& b, BooleanOp op,
     CheckBoundsVolume(A, options.max_open_area);
     CheckBoundsVolume(B, options.max_open_area);
 
-    // Table 3.1: which samples each operation keeps (keep where Omega_other == want_inside) and
-    // which side's normals turn over (a subtracted solid's).
-    bool a_inside = false, b_inside = false, flip_a = false, flip_b = false;
-    switch (op) {
-        case BooleanOp::kUnion:
-            a_inside = false, b_inside = false;
-            break;
-        case BooleanOp::kIntersection:
-            a_inside = true, b_inside = true;
-            break;
-        case BooleanOp::kDifference:
-            a_inside = false, b_inside = true, flip_b = true;
-            break;
-        case BooleanOp::kReverseDifference:
-            a_inside = true, b_inside = false, flip_a = true;
-            break;
-    }
+    // A subtracted solid's normals turn over (which samples stay is Keep's Table 3.1).
+    const bool flip_a = op == BooleanOp::kReverseDifference, flip_b = op == BooleanOp::kDifference;
 
     Output out;
     const BoundingBox ba = WorldBounds(A), bb = WorldBounds(B);
@@ -774,12 +744,12 @@ BooleanResult Boolean(const PointCloud& a, const PointCloud& b, BooleanOp op,
                              : op == BooleanOp::kDifference   ? "a"
                                                               : "b") +
                             ")");
-        const std::vector<std::uint8_t> all_a(A.size(), a_inside ? 0 : 1),
-            all_b(B.size(), b_inside ? 0 : 1);
+        const bool keep_a = Keep(kOutside, true, op), keep_b = Keep(kOutside, false, op);
+        const std::vector<std::uint8_t> all_a(A.size(), keep_a ? 1 : 0), all_b(B.size(), keep_b ? 1 : 0);
         AddSide(out, A, all_a, flip_a, 0);
         AddSide(out, B, all_b, flip_b, 1);
-        rep.kept_a = a_inside ? 0 : A.size();
-        rep.kept_b = b_inside ? 0 : B.size();
+        rep.kept_a = keep_a ? A.size() : 0;
+        rep.kept_b = keep_b ? B.size() : 0;
         result.cloud = out.Finish();
         rep.time_ms = watch.ElapsedMs();
         return result;

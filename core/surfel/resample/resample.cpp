@@ -366,7 +366,12 @@ void ResampleOptions::Validate() const {
 
 std::array<double, 2> NearestNeighborSpacing(std::span<const Vec3f> points) {
     SURFEL_CHECK(points.size() >= 2);
-    const KdTree tree(points);
+    return NearestNeighborSpacing(KdTree(points));
+}
+
+std::array<double, 2> NearestNeighborSpacing(const KdTree& tree) {
+    const std::span<const Vec3f> points = tree.points();
+    SURFEL_CHECK(points.size() >= 2);
     const KnnTable nn = tree.KnnAll(1);
     double sum = 0.0, sum2 = 0.0;
     for (std::size_t i = 0; i < points.size(); ++i) {
@@ -424,8 +429,9 @@ ResampleResult Resample(const PointCloud& input, const ResampleOptions& options,
 
     // Splat radius: the spacing eta of the output's own sampling density (notes 1.1.1).
     if (out.size() >= 2) {
-        out.radii = ComputeSamplingDensity(out.positions, std::min<int>(6, static_cast<int>(out.size()) - 1)).spacing;
-        const std::array<double, 2> s = NearestNeighborSpacing(out.positions);
+        const KdTree out_tree(out.positions);  // one tree for the radii and the spacing figures
+        out.radii = ComputeSamplingDensity(out_tree, std::min<int>(6, static_cast<int>(out.size()) - 1)).spacing;
+        const std::array<double, 2> s = NearestNeighborSpacing(out_tree);
         report.spacing_mean = s[0];
         report.spacing_cv = s[1];
     } else {

@@ -18,6 +18,7 @@
 
 #include "surfel/base/point_cloud.h"
 #include "surfel/base/progress.h"
+#include "surfel/spatial/kd_tree.h"
 #include "surfel/surface/mls.h"
 #include "surfel/surface/surface_error.h"
 
@@ -154,5 +155,7 @@ ResampleResult Resample(const PointCloud& input, const ResampleOptions& options,
 
 /// Nearest-neighbour distances of `points` (size >= 2): {mean, coefficient of variation}.
 std::array<double, 2> NearestNeighborSpacing(std::span<const Vec3f> points);
+/// The same over the points of an existing tree (no second tree built).
+std::array<double, 2> NearestNeighborSpacing(const KdTree& tree);
 
 }  // namespace surfel

@@ -165,15 +165,31 @@ void MlsOptions::Validate() const {
         InvalidField("scale_rule", "unknown rule " + std::to_string(static_cast<int>(scale_rule)));
 }
 
+namespace {
+
+// The spacing rule's scale: 2 x the median spacing (adaptive: of `density`, the multiplier of
+// eta / median eta). Throws when the points give none.
+float SpacingRuleScale(const MlsOptions& o, const SamplingDensity& density, const KdTree& tree) {
+    const float h = o.adaptive ? DefaultScale(density) : 2.0f * MedianSpacing(tree);
+    if (!(h > 0)) throw Error(ErrorCode::kInvalidArgument, "cannot derive an MLS scale from fewer than 2 distinct points");
+    return h;
+}
+
+}  // namespace
+
 // The noise rule (see the header): per sample point, ICI over the scales h0 sqrt(2)^k; h the
 // median of the chosen scales.
 MlsScaleChoice ChooseMlsScale(const PointCloud& cloud, const KdTree& tree, const MlsOptions& options) {
     MlsOptions o = options;
     o.h = 0.0f;
     o.scale_rule = MlsScaleRule::kSpacing;
-    const MlsSurface base(cloud, tree, o);  // validates, derives h0
-    MlsSurface::Impl& impl = *base.impl_;
-    impl.grid.reset();  // the candidates change h: radius queries on the kd-tree
+    // h0 as the spacing rule derives it; no grid (the candidates change h: radius queries on the
+    // kd-tree).
+    SURFEL_CHECK(tree.size() == cloud.size(), "tree over " << tree.size() << " points, cloud " << cloud.size());
+    o.Validate();
+    MlsSurface::Impl impl(cloud, tree, o);
+    if (o.adaptive) impl.density = ComputeSamplingDensity(tree);
+    impl.opt.h = SpacingRuleScale(o, impl.density, tree);
     MlsScaleChoice choice;
     choice.h0 = impl.opt.h;
     const std::size_t n = cloud.size(), count = std::min(n, kMlsNoiseSamples);
@@ -240,9 +256,7 @@ MlsSurface::MlsSurface(const PointCloud& cloud, const KdTree& tree, const MlsOpt
         impl_->choice = ChooseMlsScale(cloud, tree, options);
         impl_->opt.h = impl_->choice->h;
     }
-    if (impl_->opt.h == 0)
-        impl_->opt.h = options.adaptive ? DefaultScale(impl_->density) : 2.0f * MedianSpacing(tree);
-    if (!(impl_->opt.h > 0)) throw Error(ErrorCode::kInvalidArgument, "cannot derive an MLS scale from fewer than 2 distinct points");
+    if (impl_->opt.h == 0) impl_->opt.h = SpacingRuleScale(options, impl_->density, tree);
     // A fixed scale: one uniform grid answers every neighbour query (faster than the kd-tree's
     // radius search for this fixed radius). Skipped when the grid would be absurdly fine.
     if (!options.adaptive) {

@@ -93,16 +93,4 @@ v1::Vec3 ToProto(const Vec3d& v) {
 
 Vec3d FromProto(const v1::Vec3& v) { return {v.x(), v.y(), v.z()}; }
 
-void WithFieldPrefix(const std::string& prefix, const std::function<void()>& fn) {
-    try {
-        fn();
-    } catch (const Error& e) {
-        const std::string_view what = e.what();
-        // A message that names the job already ("simplify: the input cloud has no points") is
-        // left as it is.
-        if (e.code() != ErrorCode::kInvalidArgument || what.rfind(prefix + ":", 0) == 0) throw;
-        throw Error(e.code(), prefix + "." + e.what());
-    }
-}
-
 }  // namespace surfel::worker

@@ -18,6 +18,7 @@
 
 #include "surfel/base/point_cloud.h"
 #include "surfel/base/progress.h"
+#include "surfel/base/validate.h"  // WithFieldPrefix, used by every kind
 #include "surfel/v1/surfel.pb.h"
 
 namespace surfel::worker {
@@ -99,10 +100,5 @@ JobOutput RunJob(const v1::JobSpec& spec, const CloudLoader& load, const Progres
 /// A point or direction as the proto's Vec3, and back.
 v1::Vec3 ToProto(const Vec3d& v);
 Vec3d FromProto(const v1::Vec3& v);
-
-/// Runs `fn` and rethrows an Error(kInvalidArgument) from it with `prefix` + "." before its
-/// message: core Options name their fields, the adapter adds where they sit in the spec
-/// ("width: ..." -> "render.width: ..."). A message that starts with `prefix` + ":" is kept.
-void WithFieldPrefix(const std::string& prefix, const std::function<void()>& fn);
 
 }  // namespace surfel::worker

@@ -24,30 +24,6 @@ void BindRecord(SQLite::Statement& q, int index, const std::string& blob) {
     q.bind(index, blob.data(), static_cast<int>(blob.size()));
 }
 
-/// BEGIN IMMEDIATE … COMMIT, rolled back when left by an exception.
-class WriteTransaction {
-public:
-    explicit WriteTransaction(SQLite::Database& db) : db_(db) { db_.exec("BEGIN IMMEDIATE"); }
-    ~WriteTransaction() {
-        if (!done_) {
-            try {
-                db_.exec("ROLLBACK");
-            } catch (const SQLite::Exception&) {  // nothing more to undo
-            }
-        }
-    }
-    WriteTransaction(const WriteTransaction&) = delete;
-    WriteTransaction& operator=(const WriteTransaction&) = delete;
-    void Commit() {
-        db_.exec("COMMIT");
-        done_ = true;
-    }
-
-private:
-    SQLite::Database& db_;
-    bool done_ = false;
-};
-
 }  // namespace
 
 struct SqliteStore::Impl {
@@ -77,7 +53,7 @@ SqliteStore::SqliteStore(const std::string& database_file, const std::string& da
         // process opening at the same time never applies one twice.
         db.exec(kSchemaMigrationsTable);
         for (const Migration& m : Migrations()) {
-            WriteTransaction tx(db);
+            SQLite::Transaction tx(db, SQLite::TransactionBehavior::IMMEDIATE);  // rolled back unless committed
             SQLite::Statement newest(db, "SELECT COALESCE(MAX(version), 0) FROM schema_migrations");
             newest.executeStep();
             const std::int64_t applied = newest.getColumn(0).getInt64();
@@ -90,7 +66,7 @@ SqliteStore::SqliteStore(const std::string& database_file, const std::string& da
             rec.bind(2, m.name);
             rec.bind(3, static_cast<std::int64_t>(NowUnixMs()));
             rec.exec();
-            tx.Commit();
+            tx.commit();
         }
     } catch (const SQLite::Exception& e) {
         throw Error(ErrorCode::kInternal, "database " + database_file + ": " + e.what());
@@ -203,7 +179,7 @@ std::optional<LeasedJob> SqliteStore::ClaimNext(const std::string& owner, std::i
     store_detail::CheckLease(owner, lease_ms);
     std::lock_guard lock(impl_->mutex);
     auto& db = impl_->db;
-    WriteTransaction tx(db);
+    SQLite::Transaction tx(db, SQLite::TransactionBehavior::IMMEDIATE);  // rolled back unless committed
     SQLite::Statement pick(
         db, "SELECT id, record, attempts FROM jobs WHERE state = ? ORDER BY seq ASC LIMIT 1");
     pick.bind(1, static_cast<int>(v1::QUEUED));
@@ -226,7 +202,7 @@ std::optional<LeasedJob> SqliteStore::ClaimNext(const std::string& owner, std::i
     BindRecord(q, 4, blob);
     q.bind(5, id);
     q.exec();
-    tx.Commit();
+    tx.commit();
     return leased;
 }
 
@@ -268,7 +244,7 @@ std::vector<v1::Job> SqliteStore::RequeueExpired(std::int64_t now_unix_ms, int m
     store_detail::CheckMaxAttempts(max_attempts);
     std::lock_guard lock(impl_->mutex);
     auto& db = impl_->db;
-    WriteTransaction tx(db);
+    SQLite::Transaction tx(db, SQLite::TransactionBehavior::IMMEDIATE);  // rolled back unless committed
     struct Expired {
         v1::Job job;
         int attempts;
@@ -301,7 +277,7 @@ std::vector<v1::Job> SqliteStore::RequeueExpired(std::int64_t now_unix_ms, int m
         q.exec();
         out.push_back(std::move(e.job));
     }
-    tx.Commit();
+    tx.commit();
     return out;
 }
 

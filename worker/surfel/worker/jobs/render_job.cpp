@@ -1,8 +1,7 @@
 // The render job: a ray-traced image of the Adamson-Alexa surface (core/surfel/render).
 
-#include <cmath>
-
 #include "surfel/base/error.h"
+#include "surfel/base/validate.h"
 #include "surfel/io/image.h"
 #include "surfel/render/renderer.h"
 #include "surfel/worker/jobs/jobs.h"
@@ -10,11 +9,7 @@
 namespace surfel::worker {
 namespace {
 
-[[noreturn]] void Bad(const std::string& field, const std::string& what) {
-    throw Error(ErrorCode::kInvalidArgument, "render." + field + ": " + what);
-}
-
-bool Finite(const v1::Vec3& v) { return std::isfinite(v.x()) && std::isfinite(v.y()) && std::isfinite(v.z()); }
+[[noreturn]] void Bad(const std::string& field, const std::string& what) { InvalidField("render." + field, what); }
 
 // ---- proto -> RenderOptions ------------------------------------------------------------------
 // Proto3's "0 / unset means the default" is resolved here; every default and limit is core's.
@@ -26,7 +21,7 @@ void CheckProtoOnly(const v1::RenderJob& job) {
     for (int i = 0; i < job.lights_size(); ++i)
         if (!v1::Light::Kind_IsValid(job.lights(i).kind()))
             Bad("lights[" + std::to_string(i) + "].kind", "unknown kind " + std::to_string(job.lights(i).kind()));
-    if (!Finite(job.view())) Bad("view", "must be finite");
+    CheckFinite("render.view", FromProto(job.view()));
 }
 
 /// Core options of `job` for a cloud with bounding box `bounds` (the default camera frames it).
