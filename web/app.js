@@ -366,6 +366,8 @@ async function cloudJob(kind, spec) {
   clearError();
   $(kind).disabled = true;
   const status = $(`${kind}-status`);
+  status.textContent = "submitting…";
+  $(`${kind}-download`).hidden = true;
   try {
     const job = await api("POST", "/v1/jobs", { [kind]: spec });
     refreshJobs();
@@ -406,12 +408,19 @@ $("simplify-form").addEventListener("submit", (ev) => {
   cloudJob("simplify", { cloudId: state.cloud.id, method: $("method").value, target: String(+$("target").value) });
 });
 
+// mls keeps the input's points (it takes neither a count nor a spacing): the fields are off for it.
+$("resample-method").addEventListener("change", () => {
+  const mls = $("resample-method").value === "MLS";
+  $("resample-target").disabled = mls;
+  $("resample-spacing").disabled = mls;
+});
+
 $("resample-form").addEventListener("submit", (ev) => {
   ev.preventDefault();
   const spec = { cloudId: state.cloud.id, method: $("resample-method").value, adaptive: $("resample-adaptive").checked };
   const target = +$("resample-target").value, spacing = +$("resample-spacing").value;
-  if (target > 0) spec.target = String(target);  // uint64: a string in proto3 JSON
-  if (spacing > 0) spec.spacing = spacing;
+  if (target > 0 && !$("resample-target").disabled) spec.target = String(target);  // uint64: a string in proto3 JSON
+  if (spacing > 0 && !$("resample-spacing").disabled) spec.spacing = spacing;
   cloudJob("resample", spec);  // the server says which combination is wrong, in words
 });
 

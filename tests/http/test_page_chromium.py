@@ -5,7 +5,7 @@ numbers, orbit the preview, render, wait for the image and check that it decoded
 non-background pixels (and that the render used the orbited camera); a malformed file shows the
 server's message; simplify, resample (particle, to a count) and a boolean (union with an uploaded
 second solid, moved by the form's transform) each replace the preview with their result and show
-its point count; a resample the server refuses shows the server's message; cancel in the job list
+its point count; a resample the server refuses shows the server's message; mls keeps the count; cancel in the job list
 cancels. With ../shared/data/bunny.ply present it also times Render click -> image for the bunny
 at 512x512 in the page (browser clock; reported, never asserted) and writes it to --bench-out."""
 import argparse
@@ -190,6 +190,8 @@ def main():
         def run_form(kind, timeout=60):
             """Clicks the form's button; waits for done or an error; returns the status text."""
             WebDriverWait(driver, timeout, 0.1).until(lambda d: d.find_element(By.ID, kind).is_enabled())
+            # The click's submit handler sets the status to "submitting…" before its first await,
+            # so no status of the previous run can be read as this one's.
             driver.find_element(By.ID, kind).click()
             WebDriverWait(driver, timeout, 0.1).until(
                 lambda d: d.find_element(By.ID, f"{kind}-status").text.startswith(("done", "failed"))
@@ -215,12 +217,20 @@ def main():
         assert driver.find_element(By.ID, "resample-download").get_attribute("download").endswith(".ply")
         print(f"ok  resample: {status!r}")
 
-        # A resample the server refuses (mls takes neither count nor spacing): its words.
-        Select(driver.find_element(By.ID, "resample-method")).select_by_visible_text("MLS")
+        # A resample the server refuses (a count and a spacing at once): its words.
+        set_field("resample-spacing", "0.05")
         status = run_form("resample")
         shown = driver.find_element(By.ID, "error").text
-        assert status == "failed" and "resample.target" in shown and "mls" in shown, (status, shown)
+        assert status == "failed" and shown == "resample.target: give target or spacing, not both", (status, shown)
         print(f"ok  refused resample shows: {shown!r}")
+
+        # mls smooths every point: the count and spacing fields are off, the result keeps the input's count.
+        Select(driver.find_element(By.ID, "resample-method")).select_by_visible_text("MLS")
+        assert not driver.find_element(By.ID, "resample-target").is_enabled()
+        status = run_form("resample")
+        assert not driver.find_element(By.ID, "error").is_displayed(), driver.find_element(By.ID, "error").text
+        assert status.startswith("done: 4,000 points") and shown_points() == 4000, status
+        print(f"ok  resample mls: {status!r}")
 
         # Boolean: B uploaded in the form, moved onto the torus' tube; union -> the preview.
         driver.find_element(By.ID, "file-b").send_keys(ball)
