@@ -11,6 +11,7 @@ falls on every client alike), medians reported:
                                                           timed by its own report's time_ms, as the
                                                           process' start and exit cost ~1 s more)
   grpc-python   grpcio Upload stream, 256 KiB chunks     (Python, Debian's python3-grpcio)
+  nginx-h2-curl curl --http2 over TLS through deploy/nginx/surfel.conf   (with --nginx)
 Every upload is end to end: bytes sent, hashed and written by the server, parsed, validated and
 stored, the Cloud answered (the server-side work is the same for all four). The cloud is deleted
 after each upload so the next one is not deduplicated (`surfel upload` would otherwise send
@@ -86,6 +87,7 @@ def main():
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--page", action="store_true", help="also time Render click -> image in Chromium")
     ap.add_argument("--page-rounds", type=int, default=5)
+    ap.add_argument("--nginx", action="store_true", help="also upload through deploy/nginx/surfel.conf (HTTP/2, TLS)")
     ap.add_argument("--out", help="write the results as Markdown here")
     a = ap.parse_args()
 
@@ -153,12 +155,35 @@ def main():
 
         clients = {"http-curl": http_curl, "http-python": http_python,
                    "grpc-surfel": grpc_surfel, "grpc-python": grpc_python}
+        nginx = None
+        if a.nginx:
+            import test_nginx  # renders the shipped site file with free ports into a temp prefix
+            prefix = os.path.join(work, "nginx")
+            os.makedirs(prefix)
+            subprocess.run(["openssl", "req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256",
+                            "-nodes", "-days", "2", "-subj", "/CN=localhost", "-keyout", f"{prefix}/key.pem",
+                            "-out", f"{prefix}/cert.pem"], check=True, capture_output=True)
+            https_port = test_nginx.free_port()
+            conf = test_nginx.render_config(os.path.join(ROOT, "deploy", "nginx", "surfel.conf"), prefix,
+                                            server.http_port, test_nginx.free_port(), https_port)
+            nginx = subprocess.Popen(test_nginx.nginx_cmd(prefix, conf, "-g", "daemon off;"))
+            time.sleep(1)
+
+            def nginx_h2_curl():
+                out = subprocess.run(["curl", "-sS", "-k", "--http2", "--fail-with-body", "-X", "POST", "-T", path,
+                                      f"https://127.0.0.1:{https_port}/v1/clouds?filename=torus.ply"],
+                                     capture_output=True, check=True)
+                return json.loads(out.stdout)["id"]
+            clients["nginx-h2-curl"] = nginx_h2_curl
         times = {k: [] for k in clients}
         loads, walls, sending = [], [], {}
         try:
             run_rounds(a.rounds, clients, times, loads, server, walls, sending)
         finally:
             server.stop()
+            if nginx:
+                nginx.terminate()
+                nginx.wait()
 
         date = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
         lines = [f"## Upload, {date}", "",
@@ -168,7 +193,9 @@ def main():
                  "| client | path | median | MiB/s | range |", "|---|---|---:|---:|---|"]
         for name, ts in times.items():
             med = statistics.median(ts)
-            lines.append(f"| {name} | {'HTTP POST /v1/clouds' if name.startswith('http') else 'gRPC Upload'} | "
+            route = {"http": "HTTP POST /v1/clouds", "grpc": "gRPC Upload",
+                     "nginx": "HTTPS + HTTP/2 via nginx, POST /v1/clouds"}[name.split("-")[0]]
+            lines.append(f"| {name} | {route} | "
                          f"{med:.2f} s | {mib / med:.0f} | {min(ts):.2f}–{max(ts):.2f} s |")
         lines += ["", f"grpc-surfel is the CLI's own `time_ms` (its SHA-256 of the file, the upload, the server's "
                   f"work); the whole `surfel upload` process took {statistics.median(walls):.2f} s (median), "
