@@ -76,6 +76,7 @@ using httplib::Request;
 using httplib::Response;
 
 constexpr const char* kJson = "application/json";
+constexpr std::size_t kUploadBlock = 256 * 1024;  // bytes gathered per UploadSession::Append
 
 // ---- JSON in and out (protobuf's proto3 JSON mapping; no hand-written JSON) -----------------
 
@@ -260,10 +261,18 @@ struct HttpFront::Impl {
                 res.set_header("Connection",
                                "close");  // in case of an error before the body is read
             }
+            // httplib hands the body over in 4 KiB reads; the session writes (and flushes) each
+            // Append, so pieces are gathered into kUploadBlock before they go to the part file.
             std::exception_ptr error;
+            std::string block;
+            block.reserve(kUploadBlock);
             const bool complete = reader([&](const char* data, std::size_t n) {
                 try {
-                    session.Append(std::string_view(data, n));
+                    block.append(data, n);
+                    if (block.size() >= kUploadBlock) {
+                        session.Append(block);
+                        block.clear();
+                    }
                     return true;
                 } catch (...) {
                     error = std::current_exception();
@@ -272,6 +281,7 @@ struct HttpFront::Impl {
             });
             if (error) std::rethrow_exception(error);
             if (!complete) throw Error(ErrorCode::kInvalidArgument, "the upload body ended early");
+            if (!block.empty()) session.Append(block);
             res.headers.erase("Connection");
             auto promise = std::make_shared<std::promise<v1::Cloud>>();
             auto future = promise->get_future();

@@ -1,11 +1,12 @@
-// Surfel's page: upload a cloud, preview and orbit it, render it and simplify it through the
-// HTTP/JSON API (docs/http.md), with every job's progress from its event stream.
+// Surfel's page: upload a cloud, preview and orbit it, render, simplify, resample it and combine
+// it with a second cloud (boolean) through the HTTP/JSON API (docs/http.md), with every job's
+// progress from its event stream.
 "use strict";
 
 const $ = (id) => document.getElementById(id);
 let threeReady = null;  // resolves once the preview is set up (or known to be unavailable)
-const state = { cloud: null, camera: null, controls: null, three: null, scene: null, points: null,
-                renderer: null, lastRenderSpec: null };
+const state = { cloud: null, cloudB: null, camera: null, controls: null, three: null, scene: null,
+                points: null, renderer: null, lastRenderSpec: null };
 
 // ---- errors: every failure is shown in words ------------------------------------------------
 function showError(message) {
@@ -40,12 +41,11 @@ async function api(method, path, body) {
 }
 
 // ---- upload with progress ------------------------------------------------------------------
-function upload(file) {
+function upload(file, bar, status) {
   clearError();
-  const bar = $("upload-progress");
   bar.hidden = false;
   bar.value = 0;
-  $("upload-status").textContent = `uploading ${file.name}…`;
+  status.textContent = `uploading ${file.name}…`;
   return new Promise((resolve, reject) => {
     const xhr = new XMLHttpRequest();
     xhr.open("POST", `/v1/clouds?filename=${encodeURIComponent(file.name)}`);
@@ -64,16 +64,34 @@ function upload(file) {
 async function onFile(file) {
   if (!file) return;
   try {
-    const [cloud, bytes] = await Promise.all([upload(file), file.arrayBuffer()]);
+    const [cloud, bytes] = await Promise.all([upload(file, $("upload-progress"), $("upload-status")),
+                                              file.arrayBuffer()]);
     state.cloud = cloud;
     $("upload-status").textContent = cloud.deduplicated ? "stored before (same bytes)" : "stored";
     showCloud(cloud);
     await threeReady;
     preview(parseCloud(bytes, file.name), cloud);
-    $("render").disabled = false;
-    $("simplify").disabled = false;
+    for (const id of ["render", "simplify", "resample"]) $(id).disabled = false;
+    $("boolean").disabled = !state.cloudB;
   } catch (e) {
     $("upload-status").textContent = "upload failed";
+    showError(e.message);
+  }
+}
+
+// The boolean's second solid: uploaded the same way, not previewed (the result is).
+async function onFileB(file) {
+  if (!file) return;
+  const bar = document.createElement("progress");
+  try {
+    state.cloudB = await upload(file, bar, $("upload-b-status"));
+    $("upload-b-status").textContent =
+      `B: ${file.name}, ${Number(state.cloudB.points).toLocaleString()} points`;
+    $("boolean").disabled = !state.cloud;
+  } catch (e) {
+    state.cloudB = null;
+    $("upload-b-status").textContent = "upload of B failed";
+    $("boolean").disabled = true;
     showError(e.message);
   }
 }
@@ -107,6 +125,9 @@ function parseXyz(buffer) {
   return { positions: new Float32Array(out), colors: null };
 }
 
+// A boolean's result: the `source` vertex property (0 = A, 1 = B, 2 = the intersection curve).
+const SOURCE_COLORS = [[0.78, 0.82, 0.85], [0.95, 0.62, 0.25], [0.95, 0.2, 0.2]];
+
 const PLY_TYPES = { char: [1, "getInt8"], int8: [1, "getInt8"], uchar: [1, "getUint8"], uint8: [1, "getUint8"],
   short: [2, "getInt16"], int16: [2, "getInt16"], ushort: [2, "getUint16"], uint16: [2, "getUint16"],
   int: [4, "getInt32"], int32: [4, "getInt32"], uint: [4, "getUint32"], uint32: [4, "getUint32"],
@@ -135,10 +156,11 @@ function parsePly(buffer, bytes) {
     }
   }
   const idx = (n) => props.findIndex((p) => p.name === n);
-  const [ix, iy, iz, ir, ig, ib] = ["x", "y", "z", "red", "green", "blue"].map(idx);
+  const [ix, iy, iz, ir, ig, ib, isrc] = ["x", "y", "z", "red", "green", "blue", "source"].map(idx);
   if (ix < 0 || iy < 0 || iz < 0) throw new Error("PLY: no x, y, z");
   const positions = new Float32Array(count * 3);
-  const colors = ir >= 0 && ig >= 0 && ib >= 0 ? new Float32Array(count * 3) : null;
+  const rgb = ir >= 0 && ig >= 0 && ib >= 0;
+  const colors = rgb || isrc >= 0 ? new Float32Array(count * 3) : null;
   const values = new Array(props.length);
   if (format === "ascii") {
     const text = new TextDecoder().decode(bytes.subarray(bodyStart));
@@ -163,7 +185,8 @@ function parsePly(buffer, bytes) {
   }
   function store(i, v) {
     positions[3 * i] = v[ix]; positions[3 * i + 1] = v[iy]; positions[3 * i + 2] = v[iz];
-    if (colors) { colors[3 * i] = v[ir] / 255; colors[3 * i + 1] = v[ig] / 255; colors[3 * i + 2] = v[ib] / 255; }
+    if (rgb) { colors[3 * i] = v[ir] / 255; colors[3 * i + 1] = v[ig] / 255; colors[3 * i + 2] = v[ib] / 255; }
+    else if (colors) colors.set(SOURCE_COLORS[v[isrc]] || SOURCE_COLORS[0], 3 * i);
   }
   return { positions, colors };
 }
@@ -337,28 +360,86 @@ $("exr-download").addEventListener("click", async (ev) => {
   }
 });
 
-$("simplify-form").addEventListener("submit", async (ev) => {
-  ev.preventDefault();
+// A job whose result is a cloud (simplify, resample, boolean): submit, follow, fetch the PLY,
+// show it in place of the preview with its point count, offer it for download.
+async function cloudJob(kind, spec) {
   clearError();
-  $("simplify").disabled = true;
+  $(kind).disabled = true;
+  const status = $(`${kind}-status`);
+  status.textContent = "submitting…";
+  $(`${kind}-download`).hidden = true;
   try {
-    const spec = { simplify: { cloudId: state.cloud.id, method: $("method").value, target: String(+$("target").value) } };
-    const job = await submitAndFollow(spec, $("simplify-progress"), $("simplify-status"));
+    const job = await api("POST", "/v1/jobs", { [kind]: spec });
+    refreshJobs();
+    const result = await follow(job.id, $(`${kind}-progress`), status);
     const url = `/v1/jobs/${job.id}/result`;
     const response = await fetch(url);
     if (!response.ok) throw await failure(response);
-    const parsed = parseCloud(await response.arrayBuffer(), "result.ply");
+    const parsed = parseCloud(await response.arrayBuffer(), `${kind}.ply`);
     preview(parsed, state.cloud);
-    $("simplify-status").textContent = `done: ${(parsed.positions.length / 3).toLocaleString()} points`;
-    const a = $("simplify-download");
+    const n = parsed.positions.length / 3;
+    status.textContent = `done: ${n.toLocaleString()} points` + reportSummary(kind, result);
+    const a = $(`${kind}-download`);
     a.href = url;
-    a.download = `simplify-${job.id.slice(0, 12)}.ply`;
+    a.download = `${kind}-${job.id.slice(0, 12)}.ply`;
     a.hidden = false;
   } catch (e) {
+    status.textContent = "failed";
     showError(e.message);
   } finally {
-    $("simplify").disabled = false;
+    $(kind).disabled = kind === "boolean" ? !(state.cloud && state.cloudB) : !state.cloud;
   }
+}
+
+// A few numbers of the job's report (the JSON `surfel <job> --json` prints).
+function reportSummary(kind, result) {
+  let r = null;
+  try { r = result && result.reportJson ? JSON.parse(result.reportJson) : null; } catch (_) { return ""; }
+  if (!r) return "";
+  if (kind === "boolean")
+    return ` (${r.kept_a} from A, ${r.kept_b} from B, ${r.curve_samples} on the intersection curve)`;
+  if (kind === "resample" && r.spacing_mean)
+    return ` (spacing ${r.spacing_mean.toPrecision(3)}, cv ${(r.spacing_cv || 0).toFixed(2)})`;
+  return "";
+}
+
+$("simplify-form").addEventListener("submit", (ev) => {
+  ev.preventDefault();
+  cloudJob("simplify", { cloudId: state.cloud.id, method: $("method").value, target: String(+$("target").value) });
+});
+
+// mls keeps the input's points (it takes neither a count nor a spacing): the fields are off for it.
+$("resample-method").addEventListener("change", () => {
+  const mls = $("resample-method").value === "MLS";
+  $("resample-target").disabled = mls;
+  $("resample-spacing").disabled = mls;
+});
+
+$("resample-form").addEventListener("submit", (ev) => {
+  ev.preventDefault();
+  const spec = { cloudId: state.cloud.id, method: $("resample-method").value, adaptive: $("resample-adaptive").checked };
+  const target = +$("resample-target").value, spacing = +$("resample-spacing").value;
+  if (target > 0 && !$("resample-target").disabled) spec.target = String(target);  // uint64: a string in proto3 JSON
+  if (spacing > 0 && !$("resample-spacing").disabled) spec.spacing = spacing;
+  cloudJob("resample", spec);  // the server says which combination is wrong, in words
+});
+
+// Rotation about a coordinate axis by deg degrees, row-major (Similarity.rotation).
+function axisRotation(axis, deg) {
+  const t = (deg * Math.PI) / 180, c = Math.cos(t), s = Math.sin(t);
+  if (axis === "x") return [1, 0, 0, 0, c, -s, 0, s, c];
+  if (axis === "y") return [c, 0, s, 0, 1, 0, -s, 0, c];
+  return [c, -s, 0, s, c, 0, 0, 0, 1];
+}
+
+$("boolean-form").addEventListener("submit", (ev) => {
+  ev.preventDefault();
+  if (!state.cloudB) { showError("boolean: choose the second solid (B) first"); return; }
+  const transformB = { translation: { x: +$("b-tx").value || 0, y: +$("b-ty").value || 0, z: +$("b-tz").value || 0 },
+                       scale: $("b-scale").value === "" ? 1 : +$("b-scale").value };
+  const deg = +$("b-deg").value || 0;
+  if (deg !== 0) transformB.rotation = axisRotation($("b-axis").value, deg);
+  cloudJob("boolean", { cloudIdA: state.cloud.id, cloudIdB: state.cloudB.id, op: $("boolean-op").value, transformB });
 });
 
 // ---- the job list ---------------------------------------------------------------------------
@@ -398,6 +479,7 @@ async function refreshJobs() {
 
 // ---- wiring ---------------------------------------------------------------------------------
 $("file").addEventListener("change", (e) => onFile(e.target.files[0]));
+$("file-b").addEventListener("change", (e) => onFileB(e.target.files[0]));
 const drop = $("drop");
 drop.addEventListener("dragover", (e) => { e.preventDefault(); drop.classList.add("over"); });
 drop.addEventListener("dragleave", () => drop.classList.remove("over"));
