@@ -124,6 +124,7 @@ public:
         if (cloud.empty()) throw Error(ErrorCode::kInvalidArgument, "render: the cloud has no points");
         const RenderOptions options = ToRenderOptions(job, cloud.Bounds());
         WithFieldPrefix("render", [&] { options.Validate(); });
+        LoadImageCodec();  // a missing image plugin fails here, before the render's work
         const RenderResult r = Render(cloud, options, progress);
         ImageWriteOptions w;
         w.half = job.format() == v1::RenderJob::EXR_HALF;
