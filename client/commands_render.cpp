@@ -54,6 +54,9 @@ void RunRender(RenderArgs& a) {
     // A bad extension is a usage error, found before any work.
     const ImageFormat format = UsageOnBadValue("--output", [&] { return ImageFormatFromPath(a.output); });
     if (!a.png.empty()) UsageOnBadValue("--png", [&] { return ImageFormatFromPath(a.png); });
+    // The preview is encoded here even with --server: a missing image plugin fails before any
+    // work (in-process, the render job checks it before rendering).
+    if (!a.png.empty()) LoadImageCodec();
     v1::JobSpec spec;
     v1::RenderJob& r = *spec.mutable_render();
     r.set_width(a.width);

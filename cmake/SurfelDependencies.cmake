@@ -28,6 +28,11 @@ surfel_require_package(spdlog libspdlog-dev CONFIG)
 surfel_require_package(Threads libc6-dev)
 # FLANN has no CMake config on Debian; pkg-config works (it pulls lz4).
 surfel_require_pkgconfig(FLANN flann libflann-dev)
+# flann.pc also lists libflann, libflann_cpp, HDF5 and MPI (its optional HDF5 file support). We use
+# only the header-only kd-tree, which calls LZ4. Linking just LZ4 keeps HDF5's folder out of every
+# binary's RUNPATH, where the loader would first look for each of the ~60 libraries at start-up
+# (issue 19.2: ~10 failed opens per library).
+set_property(TARGET PkgConfig::FLANN PROPERTY INTERFACE_LINK_LIBRARIES "${pkgcfg_lib_FLANN_lz4}")
 # OpenImageIO's CMake config points at /usr/include/opencv4 and breaks generation; use pkg-config.
 surfel_require_pkgconfig(OIIO OpenImageIO libopenimageio-dev)
 

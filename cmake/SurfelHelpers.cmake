@@ -32,5 +32,7 @@ function(surfel_add_test name)
         SURFEL_SHARED_DATA_DIR="${PROJECT_SOURCE_DIR}/../shared/data"
         SURFEL_BIN_DIR="${CMAKE_RUNTIME_OUTPUT_DIRECTORY}")
     set_target_properties(${name} PROPERTIES RUNTIME_OUTPUT_DIRECTORY ${CMAKE_BINARY_DIR}/tests)
-    gtest_discover_tests(${name} DISCOVERY_TIMEOUT 60 PROPERTIES TIMEOUT 300)
+    # The image plugin lives in build/bin/, not beside the test binaries (build/tests/).
+    gtest_discover_tests(${name} DISCOVERY_TIMEOUT 60 PROPERTIES TIMEOUT 300
+                         ENVIRONMENT "SURFEL_IMAGE_PLUGIN=${SURFEL_IMAGE_PLUGIN_PATH}")
 endfunction()

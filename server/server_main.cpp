@@ -20,6 +20,7 @@
 #include "operations.h"
 #include "service.h"
 #include "surfel/base/error.h"
+#include "surfel/io/image.h"
 #include "surfel/worker/job_kind.h"
 
 namespace {
@@ -34,6 +35,23 @@ std::string DefaultWebRoot() {
         if (fs::is_directory(installed, ec)) return installed.string();
     }
     return SURFEL_SOURCE_WEB_DIR;
+}
+
+// Render jobs open the image plugin on first use (issue 19.2: the server starts without
+// OpenImageIO). Say at start where it is, or that render jobs will fail without it.
+void LogImagePlugin() {
+    namespace fs = std::filesystem;
+    std::string tried;
+    for (const std::string& path : surfel::ImageCodecSearchPath()) {
+        std::error_code ec;
+        if (fs::is_regular_file(path, ec)) {
+            spdlog::info("image plugin: {} (opened by the first render job)", path);
+            return;
+        }
+        tried += (tried.empty() ? "" : ", ") + path;
+    }
+    spdlog::warn("no image plugin found (tried: {}): render jobs will fail with FAILED_PRECONDITION",
+                 tried.empty() ? "nothing: /proc/self/exe unreadable" : tried);
 }
 
 // Writes `port` to `path` atomically (a reader never sees a partial file).
@@ -199,6 +217,7 @@ int main(int argc, char** argv) {
             std::printf("http on http://%s:%d/\n", ho.host.c_str(), http->port());
             if (!f.http_port_file.empty()) WritePortFile(f.http_port_file, http->port());
         }
+        LogImagePlugin();
         jobs.Start();
         spdlog::info("surfel-server listening on {}:{} (data {}, {} workers, {} ingest threads{}{})", f.host,
                      bound_port, f.data_dir, mo.workers ? mo.workers : std::thread::hardware_concurrency(),

@@ -39,6 +39,9 @@ const CliCase kCases[] = {
     {"render_malformed_file", "render {dir}/bad.ply -o {dir}/r.exr", 1, "bad.ply"},
     {"render_bad_value", "render {dir}/sphere.ply -o {dir}/r.exr --width 0", 2, "--width"},
     {"render_bad_extension", "render {dir}/sphere.ply -o {dir}/r.tiff", 2, "r.tiff"},
+    {"render_png_ok", "render {dir}/sphere.ply -o {dir}/r.png --width 24 --height 16 --json", 0, "\"output\":"},
+    {"render_preview_ok", "render {dir}/sphere.ply -o {dir}/r2.exr --png {dir}/r2.png --width 24 --height 16 --json", 0,
+     "\"png\":"},
     {"simplify_ok", "simplify {dir}/sphere.ply -o {dir}/s.ply --target 100 --json", 0, "\"points\":100"},
     {"simplify_unknown_flag", "simplify {dir}/sphere.ply -o {dir}/s.ply --nope", 2, "--nope"},
     {"simplify_missing_file", "simplify {dir}/none.ply -o {dir}/s.ply --target 10", 2, "none.ply"},
@@ -115,9 +118,11 @@ protected:
 };
 fs::path Cli::dir_;
 
-/// Runs `surfel args` with SURFEL_SERVER unset; returns the exit code and stdout + stderr.
-int RunSurfel(const std::string& args, std::string* output) {
-    const std::string command = "env -u SURFEL_SERVER " + std::string(SURFEL_BIN_DIR) + "/surfel " + args + " 2>&1";
+/// Runs `[env] surfel args` with SURFEL_SERVER and SURFEL_IMAGE_PLUGIN unset (the image plugin is
+/// found beside the binary, as a user's is); returns the exit code and stdout + stderr.
+int RunSurfel(const std::string& args, std::string* output, const std::string& env = "",
+              const std::string& binary = std::string(SURFEL_BIN_DIR) + "/surfel") {
+    const std::string command = "env -u SURFEL_SERVER -u SURFEL_IMAGE_PLUGIN " + env + " " + binary + " " + args + " 2>&1";
     FILE* pipe = popen(command.c_str(), "r");
     char buf[4096];
     while (std::size_t n = std::fread(buf, 1, sizeof buf, pipe)) output->append(buf, n);
@@ -132,6 +137,54 @@ TEST_P(Cli, ExitCodeAndMessage) {
     EXPECT_EQ(RunSurfel(args, &output), c.exit_code) << "surfel " << args << "\n" << output;
     EXPECT_NE(output.find(c.message), std::string::npos) << "surfel " << args << "\n" << output;
     if (c.exit_code != 0) EXPECT_LT(output.size(), 4000u) << "an error is a message, not a dump";
+}
+
+// Issue 19.2: the image plugin (OpenImageIO) is opened only by a command that writes an image.
+// LD_DEBUG=files makes the dynamic loader name every object it opens.
+TEST_F(Cli, OnlyImageCommandsLoadTheImagePlugin) {
+    const std::string sphere = (dir_ / "sphere.ply").string();
+    for (const std::string& args : {std::string("--version"), "info " + sphere,
+                                    "normals " + sphere + " -o " + (dir_ / "n2.ply").string()}) {
+        std::string output;
+        EXPECT_EQ(RunSurfel(args, &output, "LD_DEBUG=files"), 0) << args;
+        EXPECT_EQ(output.find("surfel_image_oiio"), std::string::npos) << "surfel " << args << " opened the plugin";
+        EXPECT_EQ(output.find("libOpenImageIO"), std::string::npos) << "surfel " << args << " loaded OpenImageIO";
+    }
+    std::string output;
+    EXPECT_EQ(RunSurfel("render " + sphere + " -o " + (dir_ / "l.png").string() + " --width 8 --height 8", &output,
+                        "LD_DEBUG=files"),
+              0);
+    EXPECT_NE(output.find("surfel_image_oiio.so"), std::string::npos) << "the render must open the plugin";
+}
+
+// A missing plugin: exit 1 before any work, the message naming every path searched.
+TEST_F(Cli, AMissingImagePluginIsAnErrorNamingThePathsSearched) {
+    const std::string sphere = (dir_ / "sphere.ply").string();
+    std::string output;
+    EXPECT_EQ(RunSurfel("render " + sphere + " -o " + (dir_ / "m.exr").string(), &output,
+                        "SURFEL_IMAGE_PLUGIN=" + (dir_ / "nowhere" / "plugin.so").string()),
+              1);
+    EXPECT_NE(output.find((dir_ / "nowhere" / "plugin.so").string()), std::string::npos) << output;
+    EXPECT_NE(output.find("SURFEL_IMAGE_PLUGIN"), std::string::npos) << output;
+    EXPECT_FALSE(fs::exists(dir_ / "m.exr"));
+
+    // The binary alone in a folder (a hard link keeps /proc/self/exe there; a copy if /tmp is
+    // another file system): the plugin is looked for beside it, then in the installed layout.
+    const fs::path lone = dir_ / "lone";
+    fs::create_directories(lone);
+    std::error_code ec;
+    fs::create_hard_link(fs::path(SURFEL_BIN_DIR) / "surfel", lone / "surfel", ec);
+    if (ec) fs::copy_file(fs::path(SURFEL_BIN_DIR) / "surfel", lone / "surfel");
+    output.clear();
+    EXPECT_EQ(RunSurfel("render " + sphere + " -o " + (dir_ / "m.png").string() + " --png " +
+                            (dir_ / "m2.png").string(),
+                        &output, "", (lone / "surfel").string()),
+              1);
+    EXPECT_NE(output.find((lone / "surfel_image_oiio.so").string()), std::string::npos) << output;
+    EXPECT_LT(output.size(), 4000u) << output;
+    // The commands that write no image do not need it.
+    output.clear();
+    EXPECT_EQ(RunSurfel("info " + sphere, &output, "", (lone / "surfel").string()), 0) << output;
 }
 
 std::string CaseName(const ::testing::TestParamInfo<CliCase>& param) { return param.param.name; }

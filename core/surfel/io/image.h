@@ -1,6 +1,15 @@
 #pragma once
 /// \file
-/// Float images with named channels, written through OpenImageIO (EXR, PNG).
+/// Float images with named channels, written and read as EXR and PNG through the image plugin.
+///
+/// The Image type and ImageFormatFromPath need nothing else. EncodeImage, WriteImage and ReadImage
+/// open the plugin (`surfel_image_oiio.so`, OpenImageIO behind it) with dlopen on their first
+/// call, so that a program that never touches an image never loads OpenImageIO's ~260 shared
+/// libraries (docs/startup.md). The plugin is looked for, in order: the file named by the
+/// environment variable SURFEL_IMAGE_PLUGIN (only it, when set); the executable's own folder
+/// (build/bin/ in a build tree); `<libdir>/surfel/` of an installed tree, found from the executable's
+/// folder (`<bindir>/../lib/surfel/` for the default GNU layout). When none opens,
+/// these functions throw Error(kFailedPrecondition) naming every path tried and why it failed.
 
 #include <string>
 #include <vector>
@@ -17,8 +26,10 @@ struct Image {
     float At(int x, int y, int c) const { return pixels[(std::size_t(y) * width + x) * channels.size() + c]; }
 };
 
+/// The formats an image is written as.
 enum class ImageFormat { kExr, kPng };
 
+/// How EncodeImage and WriteImage store the pixels.
 struct ImageWriteOptions {
     bool half = false;  ///< EXR: 16-bit half floats instead of 32-bit floats.
 };
@@ -33,7 +44,19 @@ std::string EncodeImage(const Image& image, ImageFormat format, const ImageWrite
 /// Writes a file (format from the extension), atomically.
 void WriteImage(const Image& image, const std::string& path, const ImageWriteOptions& options = {});
 
-/// Reads an image file with OpenImageIO (all channels as float); for tests and tools.
+/// Reads an image file (all channels as float); for tests and tools. Throws Error(kNotFound) when
+/// the file cannot be opened, Error(kInvalidArgument) when it cannot be decoded.
 Image ReadImage(const std::string& path);
+
+/// Opens the image plugin now, if it is not open yet (EncodeImage, WriteImage and ReadImage do it on
+/// first use); a command calls it before long work whose result is an image, so that a missing
+/// plugin fails first. Returns the backend and the plugin's path, e.g.
+/// "OpenImageIO 2.4.7.0 (/opt/surfel/bin/surfel_image_oiio.so)". Throws Error(kFailedPrecondition)
+/// naming every path tried. Thread-safe; the outcome is decided once per process.
+std::string LoadImageCodec();
+
+/// Where the plugin is looked for, in order (see the file comment); empty when the executable's
+/// folder cannot be found (no /proc).
+std::vector<std::string> ImageCodecSearchPath();
 
 }  // namespace surfel

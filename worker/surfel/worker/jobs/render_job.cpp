@@ -124,6 +124,11 @@ public:
         if (cloud.empty()) throw Error(ErrorCode::kInvalidArgument, "render: the cloud has no points");
         const RenderOptions options = ToRenderOptions(job, cloud.Bounds());
         WithFieldPrefix("render", [&] { options.Validate(); });
+        // A missing image plugin fails here, before the render's work. The first render of a
+        // process opens it (dlopen, not cancellable: ~0.3 s of CPU); a job cancelled or past its
+        // deadline meanwhile stops right after, before the render's setup.
+        LoadImageCodec();
+        if (progress && !progress(0.0)) throw Error(ErrorCode::kCancelled, "render: cancelled while loading the image plugin");
         const RenderResult r = Render(cloud, options, progress);
         ImageWriteOptions w;
         w.half = job.format() == v1::RenderJob::EXR_HALF;
