@@ -407,5 +407,38 @@ TEST_F(ScaleOutTest, SigtermReleasesTheLeaseToAnotherWorker) {
     EXPECT_EQ(Cluster::Exec(url_, "SELECT attempts FROM jobs WHERE id = '" + id + "'"), "0");
 }
 
+/// Runs a command line; returns its exit status and output (stdout and stderr).
+std::pair<int, std::string> RunCommand(const std::string& command) {
+    std::string out;
+    FILE* p = ::popen((command + " 2>&1").c_str(), "r");
+    char buf[4096];
+    for (std::size_t n; (n = std::fread(buf, 1, sizeof buf, p)) > 0;) out.append(buf, n);
+    const int status = ::pclose(p);
+    return {WIFEXITED(status) ? WEXITSTATUS(status) : -1, out};
+}
+
+// The flags that make no sense together are refused at start, naming the flag.
+TEST(ScaleOutFlags, RefusedCombinationsNameTheFlag) {
+    const std::string server = std::string(SURFEL_BIN_DIR) + "/surfel-server --port 0 --data-dir " +
+                               (fs::temp_directory_path() / "surfel-scaleout-flags").string();
+    auto [rc, out] = RunCommand(server + " --workers 0");
+    EXPECT_EQ(rc, 1);
+    EXPECT_NE(out.find("needs a shared store (--store postgres://...)"), std::string::npos) << out;
+    std::tie(rc, out) = RunCommand(server + " --blobs postgres");
+    EXPECT_EQ(rc, 1);
+    EXPECT_NE(out.find("--blobs postgres: large-object blobs are not built yet"), std::string::npos) << out;
+    std::tie(rc, out) = RunCommand(server + " --store mysql://x");
+    EXPECT_EQ(rc, 1);
+    EXPECT_NE(out.find("unknown scheme"), std::string::npos) << out;
+    const std::string worker = std::string(SURFEL_BIN_DIR) + "/surfel-worker";
+    std::tie(rc, out) = RunCommand(worker + " --store sqlite --blobs dir:/tmp");
+    EXPECT_EQ(rc, 1);
+    EXPECT_NE(out.find("surfel-worker needs a shared store"), std::string::npos) << out;
+    std::tie(rc, out) = RunCommand(worker + " --blobs dir:/tmp");
+    EXPECT_NE(rc, 0);
+    EXPECT_NE(out.find("--store is required"), std::string::npos) << out;
+    fs::remove_all(fs::temp_directory_path() / "surfel-scaleout-flags");
+}
+
 }  // namespace
 }  // namespace surfel

@@ -12,6 +12,8 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <chrono>
+#include <condition_variable>
 #include <cctype>
 #include <cstdlib>
 #include <filesystem>
@@ -317,6 +319,79 @@ TEST_P(StoreTest, PutLeasedJobWritesOnlyUnderTheLease) {
     EXPECT_FALSE(store_->PutLeasedJob(job, "w1"));  // a second finisher changes nothing
     EXPECT_EQ(store_->FindJob("a")->state(), v1::SUCCEEDED);
     EXPECT_TRUE(store_->RequeueExpired(NowUnixMs() + 1'000'000, 3).empty());
+}
+
+TEST_P(StoreTest, ReleasingALeaseQueuesTheJobWithoutAnAttempt) {
+    store_->PutJob(MakeJob("a", v1::QUEUED, 1), "k");
+    auto leased = store_->ClaimNext("w1", 60'000);
+    ASSERT_TRUE(leased);
+    v1::Job job = leased->job;
+    job.set_state(v1::QUEUED);  // SIGTERM: the worker gives it back
+    EXPECT_TRUE(store_->PutLeasedJob(job, "w1"));
+    EXPECT_FALSE(store_->Heartbeat("a", "w1", 60'000));
+    auto again = store_->ClaimNext("w2", 60'000);
+    ASSERT_TRUE(again);
+    EXPECT_EQ(again->attempts, 0);
+}
+
+TEST_P(StoreTest, CancelRequestsQueuedAtOnceRunningByFlag) {
+    store_->PutJob(MakeJob("q", v1::QUEUED, 1), "k1");
+    store_->PutJob(MakeJob("r", v1::QUEUED, 2), "k2");
+    store_->PutJob(MakeJob("s", v1::SUCCEEDED, 3), "k3");
+    EXPECT_EQ(store_->CountQueued(), 2u);
+    EXPECT_EQ(store_->QueuePosition("q"), 0u);
+    EXPECT_EQ(store_->QueuePosition("r"), 1u);
+    auto running = store_->ClaimNext("w1", 60'000);  // takes q, the oldest
+    ASSERT_TRUE(running);
+    EXPECT_EQ(running->job.id(), "q");
+    EXPECT_EQ(store_->QueuePosition("r"), 0u);
+
+    const auto queued = store_->RequestCancel("r");
+    ASSERT_TRUE(queued);
+    EXPECT_EQ(queued->state(), v1::CANCELLED);
+    EXPECT_EQ(queued->status_code(), ToStatusCode(ErrorCode::kCancelled));
+    EXPECT_EQ(store_->FindJob("r")->state(), v1::CANCELLED);
+    EXPECT_FALSE(store_->ClaimNext("w2", 60'000));  // nothing left to claim
+
+    EXPECT_FALSE(store_->CancelRequested("q"));
+    const auto flagged = store_->RequestCancel("q");
+    ASSERT_TRUE(flagged);
+    EXPECT_EQ(flagged->state(), v1::RUNNING);  // its leaseholder stops it
+    EXPECT_TRUE(Open()->CancelRequested("q"));  // seen through another connection
+    EXPECT_EQ(store_->RequestCancel("s")->state(), v1::SUCCEEDED);  // final: unchanged
+    EXPECT_FALSE(store_->CancelRequested("s"));
+    EXPECT_FALSE(store_->RequestCancel("nope"));
+    EXPECT_EQ(store_->CountQueued(), 0u);
+}
+
+TEST_P(StoreTest, HintsReachEveryListenerOnlyOnASharedStore) {
+    std::mutex m;
+    std::condition_variable cv;
+    std::vector<std::string> got;
+    auto sub = store_->Listen([&](const std::string& p) {
+        std::lock_guard lock(m);
+        got.push_back(p);
+        cv.notify_all();
+    });
+    if (GetParam() == "sqlite") {
+        EXPECT_FALSE(store_->shared());
+        EXPECT_EQ(sub, nullptr);
+        store_->Publish("n x j1");  // nothing to deliver to: a no-op
+        return;
+    }
+    ASSERT_TRUE(store_->shared());
+    ASSERT_NE(sub, nullptr);
+    auto other = Open();
+    // LISTEN starts on the listener's own thread: publish until the first hint arrives.
+    std::unique_lock lock(m);
+    for (int i = 0; i < 100 && got.empty(); ++i) {
+        lock.unlock();
+        other->Publish("p w1 j1 0.5 render");
+        lock.lock();
+        cv.wait_for(lock, std::chrono::milliseconds(50), [&] { return !got.empty(); });
+    }
+    ASSERT_FALSE(got.empty());
+    EXPECT_EQ(got.front(), "p w1 j1 0.5 render");
 }
 
 TEST_P(StoreTest, ConcurrentClaimersNeverGetTheSameJob) {
