@@ -291,8 +291,23 @@ TEST_F(ScaleOutTest, KilledServerTheOtherServesAndWatchCrossesServers) {
         << "B's watcher saw " << fractions.size() << " progress events";
     EXPECT_TRUE(std::is_sorted(fractions.begin(), fractions.end()));
 
+    // A client pointed at both (gRPC's own list of addresses, pick_first) carries on through B.
+    ServiceClient both("ipv4:" + servers_[0]->target() + "," + servers_[1]->target());
+    EXPECT_EQ(both.GetJob(id).state(), v1::SUCCEEDED);
     EXPECT_EQ(servers_[0]->Kill(SIGKILL), 128 + SIGKILL);
     EXPECT_EQ(b.GetJob(id).state(), v1::SUCCEEDED);
+    int refused = 0;  // at most the call in flight when A died
+    for (int i = 0; i < 3; ++i) {
+        try {
+            EXPECT_EQ(both.GetJob(id).state(), v1::SUCCEEDED);
+        } catch (const RpcError& e) {
+            EXPECT_EQ(e.status().error_code(), grpc::StatusCode::UNAVAILABLE);
+            ++refused;
+        }
+    }
+    EXPECT_LE(refused, 1);
+    const std::string through_both = both.Submit(Render(cloud, 44, 40)).id();
+    EXPECT_EQ(both.Watch(through_both, false, false).state, v1::SUCCEEDED);
     const std::string again = b.Submit(Render(cloud, 48, 40)).id();
     EXPECT_EQ(b.Watch(again, true, false).state, v1::SUCCEEDED);
     EXPECT_EQ(b.Download(id).size(), o.result.size_bytes());
