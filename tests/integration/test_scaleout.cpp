@@ -400,6 +400,30 @@ TEST_F(ScaleOutTest, PostgresRestartedMidRunNothingAcknowledgedIsLost) {
     EXPECT_EQ(Cluster::Exec(url_, "SELECT COUNT(*) FROM jobs WHERE state <> 3"), "0");  // 3: SUCCEEDED
 }
 
+// A server with worker threads of its own (the default --workers) on the shared store claims
+// like any worker: a job submitted through an API node runs there, watched through both.
+TEST_F(ScaleOutTest, AServerWithItsOwnWorkersTakesJobsFromTheSharedQueue) {
+    testing::ServerProcess api((work_ / "api").string(),
+                               {"--store", url_, "--blobs", "dir:" + Blobs(), "--workers", "0"});
+    testing::ServerProcess full((work_ / "full").string(),
+                                {"--store", url_, "--blobs", "dir:" + Blobs(), "--workers", "1"});
+    ServiceClient a(api.target()), f(full.target());
+    const std::string cloud = a.UploadFile(Path("torus.ply")).id();
+    const std::string id = a.Submit(Render(cloud, 128, 128, 2)).id();
+    std::vector<double> here, there;
+    std::thread watcher([&] {
+        EXPECT_EQ(f.Watch(id, false, false, [&](const std::string&, double x) { here.push_back(x); }).state,
+                  v1::SUCCEEDED);
+    });
+    auto o = a.Watch(id, true, false, [&](const std::string&, double x) { there.push_back(x); });
+    watcher.join();
+    ASSERT_EQ(o.state, v1::SUCCEEDED) << o.status_message;
+    EXPECT_EQ(o.bytes.size(), o.result.size_bytes());
+    EXPECT_FALSE(here.empty());
+    EXPECT_FALSE(there.empty());
+    EXPECT_EQ(Cluster::Exec(url_, "SELECT COUNT(*) FROM jobs WHERE state = 3"), "1");
+}
+
 // SIGTERM: a worker with a job longer than its grace releases the lease; another takes it at
 // once (no lease to wait out), and the stopped worker exits 0.
 TEST_F(ScaleOutTest, SigtermReleasesTheLeaseToAnotherWorker) {
