@@ -278,6 +278,32 @@ TEST_F(ScaleOutTest, KilledWorkerItsJobFinishesOnAnotherWithinLeasePlus5s) {
     EXPECT_EQ(finishers, 1);
 }
 
+// A job whose worker dies on every attempt fails after --max-attempts, with a message naming the
+// attempts and the last owner; a watcher on an API node gets that failure.
+TEST_F(ScaleOutTest, AJobWhoseWorkersKeepDyingFailsAfterMaxAttempts) {
+    servers_.push_back(std::make_unique<testing::ServerProcess>(
+        (work_ / "server-a").string(),
+        std::vector<std::string>{"--store", url_, "--blobs", "dir:" + Blobs(), "--workers", "0",
+                                 "--lease-s", std::to_string(kLeaseS), "--max-attempts", "2"}));
+    ServiceClient a(servers_[0]->target());
+    const std::string cloud = a.UploadFile(Path("torus.ply")).id();
+    const std::string id = a.Submit(Render(cloud, 512, 512, 8)).id();
+    std::string last_owner;
+    for (int attempt = 0; attempt < 2; ++attempt) {
+        workers_.push_back(std::make_unique<WorkerProcess>(
+            "w" + std::to_string(attempt), url_, Blobs(), (work_ / ("w" + std::to_string(attempt) + ".log")).string(),
+            std::vector<std::string>{"--lease-s", std::to_string(kLeaseS), "--max-attempts", "2"}));
+        ASSERT_TRUE(WaitFor([&] { return !LeaseOwner(id).empty(); }, 10000)) << "attempt " << attempt;
+        last_owner = LeaseOwner(id);
+        EXPECT_EQ(workers_.back()->Kill(SIGKILL), 128 + SIGKILL);
+    }
+    const auto o = a.Watch(id, false, false);  // the API node's own sweep ends it
+    EXPECT_EQ(o.state, v1::FAILED);
+    EXPECT_EQ(o.status_code, grpc::StatusCode::UNAVAILABLE);
+    EXPECT_EQ(o.status_message, "lease expired on attempt 2 of 2 (last owner " + last_owner + "); giving up");
+    EXPECT_EQ(a.GetJob(id).state(), v1::FAILED);
+}
+
 // A Watch on server B follows a job only server A's client fed; kill -9 of A, B serves on.
 TEST_F(ScaleOutTest, KilledServerTheOtherServesAndWatchCrossesServers) {
     StartCluster();
