@@ -32,7 +32,7 @@ namespace {
 
 /// A surfel-worker process (output discarded).
 class Worker {
-public:
+  public:
     Worker(const std::string& store, const std::string& blobs, int i) {
         pid_ = fork();
         if (pid_ == 0) {
@@ -41,8 +41,9 @@ public:
             ::dup2(fd, 2);
             const std::string bin = std::string(SURFEL_BIN_DIR) + "/surfel-worker";
             const std::string name = "bench-w" + std::to_string(i);
-            execl(bin.c_str(), bin.c_str(), "--store", store.c_str(), "--blobs", ("dir:" + blobs).c_str(),
-                  "--threads", "1", "--name", name.c_str(), "--log-level", "warn", nullptr);
+            execl(bin.c_str(), bin.c_str(), "--store", store.c_str(), "--blobs",
+                  ("dir:" + blobs).c_str(), "--threads", "1", "--name", name.c_str(), "--log-level",
+                  "warn", nullptr);
             _exit(127);
         }
     }
@@ -51,7 +52,7 @@ public:
         waitpid(pid_, nullptr, 0);
     }
 
-private:
+  private:
     pid_t pid_ = -1;
 };
 
@@ -93,10 +94,12 @@ Figures Drive(const std::string& target, const std::string& tiny, int jobs, int 
                 const auto s = Clock::now();
                 const std::string id = client.Submit(spec).id();
                 const auto out = client.Watch(id, true, false);
-                const double ms = std::chrono::duration<double, std::milli>(Clock::now() - s).count();
+                const double ms =
+                    std::chrono::duration<double, std::milli>(Clock::now() - s).count();
                 const std::int64_t seen = UnixMs();
                 const surfel::v1::Job job = client.GetJob(id);
-                if (out.state != surfel::v1::SUCCEEDED) std::fprintf(stderr, "job failed: %s\n", out.status_message.c_str());
+                if (out.state != surfel::v1::SUCCEEDED)
+                    std::fprintf(stderr, "job failed: %s\n", out.status_message.c_str());
                 std::lock_guard lock(m);
                 latencies.push_back(ms);
                 claims.push_back(double(job.started_unix_ms() - job.created_unix_ms()));
@@ -123,7 +126,8 @@ int main(int argc, char** argv) {
         if (std::string(argv[i]) == "--jobs") jobs = std::stoi(argv[i + 1]);
         if (std::string(argv[i]) == "--clients") clients = std::stoi(argv[i + 1]);
     }
-    const fs::path dir = fs::temp_directory_path() / ("surfel-bench-scaleout-" + std::to_string(getpid()));
+    const fs::path dir =
+        fs::temp_directory_path() / ("surfel-bench-scaleout-" + std::to_string(getpid()));
     fs::create_directories(dir);
     surfel::ShapeOptions o;
     o.points = 2000;
@@ -131,16 +135,19 @@ int main(int argc, char** argv) {
     const std::string tiny = (dir / "tiny.ply").string();
     surfel::WritePly(surfel::SampleShape(surfel::Shape::kSphere, o), tiny);
 
-    std::printf("| setup (%d tiny renders 16..79 x 16..%d px, %d clients) | jobs/s | p50 ms | p99 ms | "
-                "p99 queued->claimed ms | p99 finished->client ms |\n",
-                jobs, 16 + jobs / 64 + 40, clients);
+    std::printf(
+        "| setup (%d tiny renders 16..79 x 16..%d px, %d clients) | jobs/s | p50 ms | p99 ms | "
+        "p99 queued->claimed ms | p99 finished->client ms |\n",
+        jobs, 16 + jobs / 64 + 40, clients);
     std::printf("|---|---|---|---|---|---|\n");
     {
         surfel::testing::ServerProcess single((dir / "single").string());
         Drive(single.target(), tiny, 4, clients, 100);  // warm-up, as below
         const Figures f = Drive(single.target(), tiny, jobs, clients, 0);
-        std::printf("| SQLite single node (in-process pool, 2 threads) | %.1f | %.1f | %.1f | %.0f | %.0f |\n",
-                    f.jobs_per_s, f.p50_ms, f.p99_ms, f.claim_p99_ms, f.notice_p99_ms);
+        std::printf(
+            "| SQLite single node (in-process pool, 2 threads) | %.1f | %.1f | %.1f | %.0f | %.0f "
+            "|\n",
+            f.jobs_per_s, f.p50_ms, f.p99_ms, f.claim_p99_ms, f.notice_p99_ms);
         std::fflush(stdout);
     }
     auto& cluster = surfel::testing_pg::Cluster::Get();
@@ -153,16 +160,19 @@ int main(int argc, char** argv) {
         const std::string url = cluster.NewSchema("bench_" + std::to_string(workers));
         const std::string blobs = (dir / ("blobs-" + std::to_string(workers))).string();
         fs::create_directories(blobs);
-        surfel::testing::ServerProcess api((dir / ("api-" + std::to_string(workers))).string(),
-                                           {"--store", url, "--blobs", "dir:" + blobs, "--workers", "0"});
+        surfel::testing::ServerProcess api(
+            (dir / ("api-" + std::to_string(workers))).string(),
+            {"--store", url, "--blobs", "dir:" + blobs, "--workers", "0"});
         std::vector<std::unique_ptr<Worker>> pool;
         for (int i = 0; i < workers; ++i) pool.push_back(std::make_unique<Worker>(url, blobs, i));
         // Warm-up: until every worker has started (connected, LISTENing, first claim), which on a
         // loaded machine takes seconds; not part of the figures.
         Drive(api.target(), tiny, 4 * workers, clients, 100 + salt);
         const Figures f = Drive(api.target(), tiny, jobs, clients, salt++);
-        std::printf("| PostgreSQL, 1 API server + %d worker%s | %.1f | %.1f | %.1f | %.0f | %.0f |\n", workers,
-                    workers > 1 ? "s" : "", f.jobs_per_s, f.p50_ms, f.p99_ms, f.claim_p99_ms, f.notice_p99_ms);
+        std::printf(
+            "| PostgreSQL, 1 API server + %d worker%s | %.1f | %.1f | %.1f | %.0f | %.0f |\n",
+            workers, workers > 1 ? "s" : "", f.jobs_per_s, f.p50_ms, f.p99_ms, f.claim_p99_ms,
+            f.notice_p99_ms);
         std::fflush(stdout);
     }
     fs::remove_all(dir);

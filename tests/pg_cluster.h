@@ -3,9 +3,9 @@
 // /dev/shm) by Debian's initdb as the `postgres` user when run as root, copied into a temp dir
 // and started on a free loopback port. Used by the store's unit tests and the scale-out
 // integration tests (which also stop and restart it on the same port).
+#include <fcntl.h>
 #include <gtest/gtest.h>
 #include <libpq-fe.h>
-#include <fcntl.h>
 #include <netinet/in.h>
 #include <pwd.h>
 #include <sys/file.h>
@@ -20,7 +20,6 @@
 
 namespace surfel::testing_pg {
 namespace fs = std::filesystem;
-
 
 /// Quotes a string for /bin/sh.
 inline std::string Sh(const std::string& s) {
@@ -60,8 +59,7 @@ inline std::string PostgresBinDir() {
     std::error_code ec;
     for (const auto& e : fs::directory_iterator("/usr/lib/postgresql", ec)) {
         const fs::path bin = e.path() / "bin";
-        if (fs::exists(bin / "initdb") && fs::exists(bin / "pg_ctl") &&
-            bin.string() > best)
+        if (fs::exists(bin / "initdb") && fs::exists(bin / "pg_ctl") && bin.string() > best)
             best = bin.string();
     }
     return best;
@@ -72,7 +70,7 @@ inline std::string PostgresBinDir() {
 /// copied into a temp dir, fsync off (a throwaway), its socket in that dir and TCP on a free
 /// loopback port.
 class Cluster {
-public:
+  public:
     static Cluster& Get() {
         static Cluster cluster;
         return cluster;
@@ -117,12 +115,13 @@ public:
         return value;
     }
 
-private:
+  private:
     Cluster() {
         const std::string bin = PostgresBinDir();
         if (bin.empty()) {
-            why_not_ = "PostgreSQL server binaries not found under /usr/lib/postgresql "
-                       "(apt-get install postgresql)";
+            why_not_ =
+                "PostgreSQL server binaries not found under /usr/lib/postgresql "
+                "(apt-get install postgresql)";
             return;
         }
         installed_ = true;
@@ -177,7 +176,7 @@ private:
         port_ = std::to_string(port);
     }
 
-public:
+  public:
     /// The cluster's port ("" when it did not start).
     const std::string& port() const { return port_; }
     /// Stops the server (`pg_ctl stop -m fast`: sessions are terminated); true on success.
@@ -194,7 +193,7 @@ public:
         return ok;
     }
 
-private:
+  private:
     ~Cluster() {
         if (started_) {
             const std::string stop = pg_ctl_ + " -m immediate -w stop > /dev/null 2>&1";
@@ -208,8 +207,8 @@ private:
     /// Made under an exclusive lock so test processes running in parallel make it once.
     std::string Template(const std::string& bin, const std::string& as_user) {
         const std::string version = fs::path(bin).parent_path().filename().string();
-        const std::string root = ScratchDir() + "/surfel-pg-template-" + version + "-uid" +
-                                 std::to_string(::geteuid());
+        const std::string root =
+            ScratchDir() + "/surfel-pg-template-" + version + "-uid" + std::to_string(::geteuid());
         const int lock = ::open((root + ".lock").c_str(), O_CREAT | O_RDWR, 0600);
         if (lock < 0 || ::flock(lock, LOCK_EX) != 0) {
             why_not_ = "cannot lock " + root + ".lock";

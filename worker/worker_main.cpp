@@ -23,14 +23,16 @@ int main(int argc, char** argv) {
     int max_attempts = 3;
     std::uint64_t max_points = 50'000'000;
     bool json_logs = false;
-    app.add_option("--store", store_url, "The shared store: postgres://user@host:port/db")->required();
+    app.add_option("--store", store_url, "The shared store: postgres://user@host:port/db")
+        ->required();
     app.add_option("--blobs", blobs, "The shared blob directory: dir:PATH (the servers' --blobs)")
         ->required();
     app.add_option("--threads", threads, "Jobs run at once (each claims its own)")
         ->default_val(1)
         ->check(CLI::Range(1, 1024));
-    app.add_option("--lease-s", lease_s,
-                   "Seconds a claimed job's lease lasts without a heartbeat (renewed every third of it)")
+    app.add_option(
+           "--lease-s", lease_s,
+           "Seconds a claimed job's lease lasts without a heartbeat (renewed every third of it)")
         ->default_val(30)
         ->check(CLI::Range(0.1, 86400.0));
     app.add_option("--max-attempts", max_attempts, "Expired leases before a job fails")
@@ -48,16 +50,20 @@ int main(int argc, char** argv) {
         ->check(CLI::IsMember({"trace", "debug", "info", "warn", "error"}));
     app.add_flag("--json-logs", json_logs, "Log one JSON object per line");
     app.footer(
-        "SIGTERM/SIGINT: claim nothing more, give running jobs --grace seconds, release the leases of the rest\n"
-        "(another worker takes them at once), exit 0. kill -9: the job runs again elsewhere after --lease-s.\n"
-        "Example:\n  surfel-worker --store postgres://surfel@db:5432/surfel --blobs dir:/mnt/surfel --threads 2");
+        "SIGTERM/SIGINT: claim nothing more, give running jobs --grace seconds, release the leases "
+        "of the rest\n"
+        "(another worker takes them at once), exit 0. kill -9: the job runs again elsewhere after "
+        "--lease-s.\n"
+        "Example:\n  surfel-worker --store postgres://surfel@db:5432/surfel --blobs "
+        "dir:/mnt/surfel --threads 2");
     CLI11_PARSE(app, argc, argv);
 
     auto logger = spdlog::stderr_color_mt("surfel-worker");
     spdlog::set_default_logger(logger);
     spdlog::set_level(spdlog::level::from_str(log_level));
     if (json_logs)
-        spdlog::set_pattern(R"({"time":"%Y-%m-%dT%H:%M:%S.%e%z","level":"%l","thread":%t,"msg":"%v"})");
+        spdlog::set_pattern(
+            R"({"time":"%Y-%m-%dT%H:%M:%S.%e%z","level":"%l","thread":%t,"msg":"%v"})");
 
     sigset_t signals;
     sigemptyset(&signals);

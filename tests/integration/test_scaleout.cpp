@@ -42,13 +42,19 @@ double MsSince(Clock::time_point t) {
 
 /// A surfel-worker process, its output in a log file.
 class WorkerProcess {
-public:
+  public:
     WorkerProcess(const std::string& name, const std::string& store, const std::string& blobs,
                   const std::string& log, std::vector<std::string> extra = {})
         : log_(log) {
         std::vector<std::string> args = {std::string(SURFEL_BIN_DIR) + "/surfel-worker",
-                                         "--store", store, "--blobs", "dir:" + blobs,
-                                         "--name", name, "--threads", "1"};
+                                         "--store",
+                                         store,
+                                         "--blobs",
+                                         "dir:" + blobs,
+                                         "--name",
+                                         name,
+                                         "--threads",
+                                         "1"};
         args.insert(args.end(), extra.begin(), extra.end());
         pid_ = fork();
         if (pid_ == 0) {
@@ -86,7 +92,7 @@ public:
         return std::string(std::istreambuf_iterator<char>(in), {});
     }
 
-private:
+  private:
     std::string log_;
     pid_t pid_ = -1;
 };
@@ -94,7 +100,9 @@ private:
 /// How often `needle` occurs in `text`.
 int Count(const std::string& text, const std::string& needle) {
     int n = 0;
-    for (std::size_t at = text.find(needle); at != std::string::npos; at = text.find(needle, at + 1)) ++n;
+    for (std::size_t at = text.find(needle); at != std::string::npos;
+         at = text.find(needle, at + 1))
+        ++n;
     return n;
 }
 
@@ -113,7 +121,7 @@ std::string WithoutCapDate(std::string bytes) {
 }
 
 class ScaleOutTest : public ::testing::Test {
-protected:
+  protected:
     static constexpr double kLeaseS = 2.0;
 
     static void SetUpTestSuite() {
@@ -164,7 +172,8 @@ protected:
     }
     /// The lease owner of a job, read from the table ("" when none).
     std::string LeaseOwner(const std::string& job_id) const {
-        return Cluster::Exec(url_, "SELECT COALESCE(lease_owner, '') FROM jobs WHERE id = '" + job_id + "'");
+        return Cluster::Exec(
+            url_, "SELECT COALESCE(lease_owner, '') FROM jobs WHERE id = '" + job_id + "'");
     }
 
     static v1::JobSpec Render(const std::string& cloud, int w, int h, int spp = 1) {
@@ -186,7 +195,8 @@ protected:
     static std::vector<v1::JobSpec> MixedJobs(const std::string& cloud, int n) {
         std::vector<v1::JobSpec> specs;
         for (int i = 0; i < n; ++i)
-            specs.push_back(i % 3 == 2 ? Simplify(cloud, 500 + 10 * i) : Render(cloud, 24 + i, 20 + i));
+            specs.push_back(i % 3 == 2 ? Simplify(cloud, 500 + 10 * i)
+                                       : Render(cloud, 24 + i, 20 + i));
         return specs;
     }
     /// Result bytes of each spec on a single-node server (SQLite, in-process pool).
@@ -245,11 +255,13 @@ TEST_F(ScaleOutTest, MixedJobsAcrossTwoServersSucceedOnceWithSingleNodeBytes) {
     for (const auto& id : ids) EXPECT_EQ(Count(logs, "job " + id + ": SUCCEEDED"), 1) << id;
     EXPECT_EQ(Cluster::Exec(url_, "SELECT COUNT(*) FROM jobs WHERE attempts > 0"), "0");
     for (int w = 0; w < 3; ++w)  // the work is shared
-        EXPECT_GT(Count(workers_[w]->Log(), ": SUCCEEDED in"), 0) << "worker " << w << " ran nothing";
+        EXPECT_GT(Count(workers_[w]->Log(), ": SUCCEEDED in"), 0)
+            << "worker " << w << " ran nothing";
     const std::vector<std::string> reference = SingleNodeBytes(specs);
     ASSERT_EQ(reference.size(), bytes.size());
     for (int i = 0; i < kJobs; ++i)
-        EXPECT_TRUE(WithoutCapDate(bytes[i]) == WithoutCapDate(reference[i])) << "job " << i << " differs";
+        EXPECT_TRUE(WithoutCapDate(bytes[i]) == WithoutCapDate(reference[i]))
+            << "job " << i << " differs";
 }
 
 // kill -9 of the worker running a job: another worker finishes it within the lease + 5 s.
@@ -291,16 +303,20 @@ TEST_F(ScaleOutTest, AJobWhoseWorkersKeepDyingFailsAfterMaxAttempts) {
     std::string last_owner;
     for (int attempt = 0; attempt < 2; ++attempt) {
         workers_.push_back(std::make_unique<WorkerProcess>(
-            "w" + std::to_string(attempt), url_, Blobs(), (work_ / ("w" + std::to_string(attempt) + ".log")).string(),
+            "w" + std::to_string(attempt), url_, Blobs(),
+            (work_ / ("w" + std::to_string(attempt) + ".log")).string(),
             std::vector<std::string>{"--lease-s", std::to_string(kLeaseS), "--max-attempts", "2"}));
-        ASSERT_TRUE(WaitFor([&] { return !LeaseOwner(id).empty(); }, 10000)) << "attempt " << attempt;
-        last_owner = LeaseOwner(id);
+        // This worker's own claim, not the dead one's lease before a sweep took it back.
+        last_owner = "w" + std::to_string(attempt) + "/0";
+        ASSERT_TRUE(WaitFor([&] { return LeaseOwner(id) == last_owner; }, 15000))
+            << "attempt " << attempt << ": lease owner " << LeaseOwner(id);
         EXPECT_EQ(workers_.back()->Kill(SIGKILL), 128 + SIGKILL);
     }
     const auto o = a.Watch(id, false, false);  // the API node's own sweep ends it
     EXPECT_EQ(o.state, v1::FAILED);
     EXPECT_EQ(o.status_code, grpc::StatusCode::UNAVAILABLE);
-    EXPECT_EQ(o.status_message, "lease expired on attempt 2 of 2 (last owner " + last_owner + "); giving up");
+    EXPECT_EQ(o.status_message,
+              "lease expired on attempt 2 of 2 (last owner " + last_owner + "); giving up");
     EXPECT_EQ(a.GetJob(id).state(), v1::FAILED);
 }
 
@@ -311,9 +327,12 @@ TEST_F(ScaleOutTest, KilledServerTheOtherServesAndWatchCrossesServers) {
     const std::string cloud = a.UploadFile(Path("torus.ply")).id();
     const std::string id = a.Submit(Render(cloud, 256, 256, 2)).id();
     std::vector<double> fractions;
-    auto o = b.Watch(id, false, false, [&](const std::string&, double f) { fractions.push_back(f); });
+    auto o =
+        b.Watch(id, false, false, [&](const std::string&, double f) { fractions.push_back(f); });
     ASSERT_EQ(o.state, v1::SUCCEEDED) << o.status_message;
-    EXPECT_GE(std::count_if(fractions.begin(), fractions.end(), [](double f) { return f > 0 && f < 1; }), 2)
+    EXPECT_GE(
+        std::count_if(fractions.begin(), fractions.end(), [](double f) { return f > 0 && f < 1; }),
+        2)
         << "B's watcher saw " << fractions.size() << " progress events";
     EXPECT_TRUE(std::is_sorted(fractions.begin(), fractions.end()));
 
@@ -361,12 +380,14 @@ TEST_F(ScaleOutTest, CancelThroughOneServerStopsTheJobOnItsWorker) {
     const double ms = MsSince(t0);
     EXPECT_EQ(outcome.state, v1::CANCELLED) << outcome.status_message;
     EXPECT_EQ(outcome.status_code, grpc::StatusCode::CANCELLED);
-    std::printf("cancel through server A of a job on worker %s -> CANCELLED on A's watcher: %.1f ms\n",
-                owner.c_str(), ms);
+    std::printf(
+        "cancel through server A of a job on worker %s -> CANCELLED on A's watcher: %.1f ms\n",
+        owner.c_str(), ms);
     EXPECT_LT(ms, 1000.0);
     EXPECT_EQ(b.GetJob(id).state(), v1::CANCELLED);
     // The worker's end released the lease.
-    EXPECT_EQ(Cluster::Exec(url_, "SELECT lease_owner IS NULL FROM jobs WHERE id = '" + id + "'"), "t");
+    EXPECT_EQ(Cluster::Exec(url_, "SELECT lease_owner IS NULL FROM jobs WHERE id = '" + id + "'"),
+              "t");
 }
 
 // PostgreSQL restarted mid-run: servers and workers reconnect; every acknowledged job succeeds
@@ -413,7 +434,8 @@ TEST_F(ScaleOutTest, PostgresRestartedMidRunNothingAcknowledgedIsLost) {
         ids.push_back(id);
         acknowledged.push_back(more[i]);
     }
-    std::printf("after the PostgreSQL restart the servers accepted jobs again in %.0f ms\n", MsSince(t0));
+    std::printf("after the PostgreSQL restart the servers accepted jobs again in %.0f ms\n",
+                MsSince(t0));
     std::vector<std::string> bytes;
     for (std::size_t i = 0; i < ids.size(); ++i) {
         auto o = (i % 2 ? a : b).Watch(ids[i], true, false);
@@ -423,7 +445,8 @@ TEST_F(ScaleOutTest, PostgresRestartedMidRunNothingAcknowledgedIsLost) {
     const std::vector<std::string> reference = SingleNodeBytes(acknowledged);
     for (std::size_t i = 0; i < ids.size(); ++i)
         EXPECT_TRUE(WithoutCapDate(bytes[i]) == WithoutCapDate(reference[i])) << "job " << i;
-    EXPECT_EQ(Cluster::Exec(url_, "SELECT COUNT(*) FROM jobs WHERE state <> 3"), "0");  // 3: SUCCEEDED
+    EXPECT_EQ(Cluster::Exec(url_, "SELECT COUNT(*) FROM jobs WHERE state <> 3"),
+              "0");  // 3: SUCCEEDED
 }
 
 // A server with worker threads of its own (the default --workers) on the shared store claims
@@ -438,8 +461,10 @@ TEST_F(ScaleOutTest, AServerWithItsOwnWorkersTakesJobsFromTheSharedQueue) {
     const std::string id = a.Submit(Render(cloud, 128, 128, 2)).id();
     std::vector<double> here, there;
     std::thread watcher([&] {
-        EXPECT_EQ(f.Watch(id, false, false, [&](const std::string&, double x) { here.push_back(x); }).state,
-                  v1::SUCCEEDED);
+        EXPECT_EQ(
+            f.Watch(id, false, false, [&](const std::string&, double x) { here.push_back(x); })
+                .state,
+            v1::SUCCEEDED);
     });
     auto o = a.Watch(id, true, false, [&](const std::string&, double x) { there.push_back(x); });
     watcher.join();
@@ -491,7 +516,8 @@ TEST(ScaleOutFlags, RefusedCombinationsNameTheFlag) {
     EXPECT_NE(out.find("needs a shared store (--store postgres://...)"), std::string::npos) << out;
     std::tie(rc, out) = RunCommand(server + " --blobs postgres");
     EXPECT_EQ(rc, 1);
-    EXPECT_NE(out.find("--blobs postgres: large-object blobs are not built yet"), std::string::npos) << out;
+    EXPECT_NE(out.find("--blobs postgres: large-object blobs are not built yet"), std::string::npos)
+        << out;
     std::tie(rc, out) = RunCommand(server + " --store mysql://x");
     EXPECT_EQ(rc, 1);
     EXPECT_NE(out.find("unknown scheme"), std::string::npos) << out;

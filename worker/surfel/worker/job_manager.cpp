@@ -66,7 +66,6 @@ std::string JobKey(const v1::JobSpec& spec) {
     return Sha256Hex(bytes);
 }
 
-
 JobManager::JobManager(Store& store, ManagerOptions options, TransitionHook hook)
     : store_(store), options_(options), hook_(std::move(hook)), shared_(store.shared()) {
     if (options_.workers == 0) options_.workers = std::max(1u, std::thread::hardware_concurrency());

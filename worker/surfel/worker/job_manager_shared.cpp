@@ -17,9 +17,9 @@
 
 #include "surfel/base/error.h"
 #include "surfel/io/file_bytes.h"
-#include "surfel/worker/job_manager_detail.h"
 #include "surfel/worker/job_kind.h"
 #include "surfel/worker/job_manager.h"
+#include "surfel/worker/job_manager_detail.h"
 #include "surfel/worker/job_state.h"
 #include "surfel/worker/status.h"
 
@@ -41,7 +41,7 @@ std::string DefaultWorkerName() {
 
 /// Logs a database outage once per `every`, not once per attempt.
 class OutageLog {
-public:
+  public:
     void Warn(const char* what, const std::exception& e) {
         const auto now = Clock::now();
         if (now - last_ < std::chrono::seconds(5)) return;
@@ -49,7 +49,7 @@ public:
         spdlog::warn("{}: {} (retrying with backoff)", what, e.what());
     }
 
-private:
+  private:
     Clock::time_point last_{};
 };
 
@@ -169,7 +169,8 @@ void JobManager::FollowWatched(const std::vector<std::string>& ids) {
 void JobManager::MaintenanceLoop() {
     OutageLog outage;
     const auto heartbeat_every = milliseconds(std::max<std::int64_t>(options_.lease_ms / 3, 50));
-    const auto sweep_every = milliseconds(std::clamp<std::int64_t>(options_.lease_ms / 4, 100, 2000));
+    const auto sweep_every =
+        milliseconds(std::clamp<std::int64_t>(options_.lease_ms / 4, 100, 2000));
     const auto poll_every = milliseconds(std::max<std::int64_t>(options_.poll_ms, 10));
     auto next_heartbeat = Clock::now() + heartbeat_every;
     auto next_sweep = Clock::now();
@@ -180,9 +181,9 @@ void JobManager::MaintenanceLoop() {
         bool poll = false;
         {
             std::unique_lock lock(mutex_);
-            maintenance_wake_.wait_until(lock, std::min({next_heartbeat, next_sweep, next_poll}), [&] {
-                return maintenance_stop_ || follow_all_ || !follow_dirty_.empty();
-            });
+            maintenance_wake_.wait_until(
+                lock, std::min({next_heartbeat, next_sweep, next_poll}),
+                [&] { return maintenance_stop_ || follow_all_ || !follow_dirty_.empty(); });
             if (maintenance_stop_) return;
             poll = follow_all_ || Clock::now() >= next_poll;
             if (poll) {
@@ -210,16 +211,18 @@ void JobManager::MaintenanceLoop() {
                 next_heartbeat = Clock::now() + heartbeat_every;
                 for (auto& [id, run] : runs)
                     if (!store_.Heartbeat(id, run->owner, options_.lease_ms) && !run->lost) {
-                        spdlog::warn("job {}: lease lost (expired and taken back); stopping it here",
-                                     id);
+                        spdlog::warn(
+                            "job {}: lease lost (expired and taken back); stopping it here", id);
                         run->lost = true;
                     }
             }
             if (Clock::now() >= next_sweep) {
                 next_sweep = Clock::now() + sweep_every;
-                for (const v1::Job& job : store_.RequeueExpired(NowUnixMs(), options_.max_attempts)) {
+                for (const v1::Job& job :
+                     store_.RequeueExpired(NowUnixMs(), options_.max_attempts)) {
                     if (job.state() == v1::QUEUED) {
-                        spdlog::warn("job {}: its lease expired (worker gone); queued again", job.id());
+                        spdlog::warn("job {}: its lease expired (worker gone); queued again",
+                                     job.id());
                         PublishHint('q', job.id());
                     } else {
                         spdlog::warn("job {}: {}", job.id(), job.status_message());
@@ -257,8 +260,8 @@ v1::Job JobManager::SharedSubmit(const v1::JobSpec& spec) {
     }
     const std::size_t queued = store_.CountQueued();
     if (queued >= options_.max_queued)
-        throw Error(ErrorCode::kResourceExhausted, "job queue is full (" + std::to_string(queued) +
-                                                       " jobs waiting); retry later");
+        throw Error(ErrorCode::kResourceExhausted,
+                    "job queue is full (" + std::to_string(queued) + " jobs waiting); retry later");
     v1::Job job;
     job.set_id(NewJobId());
     job.set_type(std::string(kind.Name()));
@@ -456,7 +459,7 @@ void JobManager::ExecuteLeased(LeasedJob leased) {
             done.set_status_code(status.error_code());
             done.set_status_message(status.error_message());
             done.set_state(status.error_code() == grpc::StatusCode::CANCELLED ? v1::CANCELLED
-                                                                               : v1::FAILED);
+                                                                              : v1::FAILED);
         }
     }
     if (end == End::kRelease) {
@@ -472,9 +475,10 @@ void JobManager::ExecuteLeased(LeasedJob leased) {
         try {
             written = FinishLeased(done, run->owner);
         } catch (const std::exception& e) {
-            spdlog::error("job {}: its end could not be written ({}); the lease will expire and "
-                          "the job run again",
-                          id, e.what());
+            spdlog::error(
+                "job {}: its end could not be written ({}); the lease will expire and "
+                "the job run again",
+                id, e.what());
         }
     }
     {
@@ -494,9 +498,10 @@ void JobManager::ExecuteLeased(LeasedJob leased) {
     if (written) PublishHint(end == End::kFinal ? 'd' : 'q', id);
     const double seconds = std::chrono::duration<double>(Clock::now() - started).count();
     if (end == End::kLost || (!written && end == End::kFinal))
-        spdlog::warn("job {}: lease lost after {:.3f} s; another worker runs it (its result is "
-                     "the same bytes)",
-                     id, seconds);
+        spdlog::warn(
+            "job {}: lease lost after {:.3f} s; another worker runs it (its result is "
+            "the same bytes)",
+            id, seconds);
     else if (end == End::kRelease)
         spdlog::warn("job {}: released after {:.3f} s; queued again for any worker", id, seconds);
     else
