@@ -1,5 +1,6 @@
-// surfel-server: the gRPC service with its worker pool, SQLite store and metrics, and (with
-// --http) the HTTP/JSON front and the web page.
+// surfel-server: the gRPC service with its worker pool, its store (SQLite in the data dir, or a
+// shared PostgreSQL with --store) and metrics, and (with --http) the HTTP/JSON front and the web
+// page.
 #include <grpcpp/ext/proto_server_reflection_plugin.h>
 #include <grpcpp/health_check_service_interface.h>
 #include <grpcpp/server_builder.h>
@@ -22,6 +23,7 @@
 #include "surfel/base/error.h"
 #include "surfel/io/image.h"
 #include "surfel/worker/job_kind.h"
+#include "surfel/worker/store_postgres.h"
 
 namespace {
 
@@ -65,7 +67,11 @@ struct Flags {
     std::string host = "127.0.0.1";
     int port = 50051;
     std::string data_dir = "surfel-data";
-    std::size_t workers = 0;
+    std::string store;
+    std::string blobs;
+    int workers = -1;
+    double lease_s = 30;
+    int max_attempts = 3;
     std::size_t max_queued = 256;
     std::size_t ingest_threads = 2;
     std::size_t ingest_queue = 64;
@@ -96,7 +102,26 @@ int main(int argc, char** argv) {
         ->check(CLI::Range(0, 65535));
     app.add_option("-d,--data-dir", f.data_dir, "Directory for the SQLite database and the blobs (created)")
         ->default_val("surfel-data");
-    app.add_option("-w,--workers", f.workers, "Worker threads (0 = one per core)")->default_val(0);
+    app.add_option("--store", f.store,
+                   "Where jobs and clouds' records live: empty = SQLite in --data-dir (one node); "
+                   "postgres://user@host:port/db = PostgreSQL shared by many servers and surfel-worker "
+                   "processes (docs/scale-out.md)");
+    app.add_option("--blobs", f.blobs,
+                   "Where uploaded clouds and results live: dir:PATH (a shared mount when several machines "
+                   "share --store); default: --data-dir");
+    app.add_option("-w,--workers", f.workers,
+                   "Worker threads running jobs here (default: one per core); 0 = an API node only, which "
+                   "needs a shared --store and surfel-worker processes")
+        ->check(CLI::Range(0, 4096));
+    app.add_option("--lease-s", f.lease_s,
+                   "Shared store: seconds a claimed job's lease lasts without a heartbeat (renewed every "
+                   "third of it); a dead worker's job runs again after it")
+        ->default_val(30)
+        ->check(CLI::Range(0.1, 86400.0));
+    app.add_option("--max-attempts", f.max_attempts,
+                   "Shared store: expired leases before a job fails (UNAVAILABLE, naming the attempts)")
+        ->default_val(3)
+        ->check(CLI::Range(1, 1000));
     app.add_option("--max-queued", f.max_queued, "Jobs waiting before Submit answers RESOURCE_EXHAUSTED")
         ->default_val(256)
         ->check(CLI::Range(1, 1000000));
@@ -138,6 +163,8 @@ int main(int argc, char** argv) {
         ->check(CLI::Range(0.05, 3600.0));
     app.footer(
         "Jobs persist in DATA_DIR: after a crash or restart, queued and running jobs run again.\n"
+        "Scale-out: --store postgres://... --blobs dir:/shared on every server and surfel-worker; --workers 0 makes\n"
+        "an API node; a dead worker's job runs again elsewhere after --lease-s (docs/scale-out.md).\n"
         "SIGTERM/SIGINT: stop accepting, give running jobs --grace seconds, requeue the rest, exit 0.\n"
         "Health: grpc.health.v1.Health (\"\" and \"surfel.v1.Surfel\"); server reflection is on.\n"
         "HTTP: --http HOST:PORT serves the same API as JSON (/v1/clouds, /v1/jobs, events as SSE) and the web\n"
@@ -161,10 +188,16 @@ int main(int argc, char** argv) {
     try {
         server::Metrics metrics;
         if (!f.metrics.empty()) metrics.Serve(f.metrics);
-        std::unique_ptr<worker::Store> store_ptr = worker::OpenStore("", f.data_dir);  // SQLite in DATA_DIR
+        // The store: SQLite in DATA_DIR (the default), or a shared PostgreSQL; blobs in --blobs.
+        const std::string blob_dir = worker::BlobDirFromFlag(f.blobs, f.data_dir);
+        std::unique_ptr<worker::Store> store_ptr = worker::OpenStore(
+            f.store.empty() ? "sqlite:" + f.data_dir + "/surfel.db" : f.store, blob_dir);
         worker::Store& store = *store_ptr;
         worker::ManagerOptions mo;
-        mo.workers = f.workers;
+        mo.workers = f.workers > 0 ? static_cast<std::size_t>(f.workers) : 0;
+        mo.run_jobs = f.workers != 0;
+        mo.lease_ms = static_cast<std::int64_t>(f.lease_s * 1000);
+        mo.max_attempts = f.max_attempts;
         mo.max_queued = f.max_queued;
         mo.max_points = f.max_points;
         worker::JobManager jobs(store, mo,
@@ -219,8 +252,9 @@ int main(int argc, char** argv) {
         }
         LogImagePlugin();
         jobs.Start();
-        spdlog::info("surfel-server listening on {}:{} (data {}, {} workers, {} ingest threads{}{})", f.host,
-                     bound_port, f.data_dir, mo.workers ? mo.workers : std::thread::hardware_concurrency(),
+        spdlog::info("surfel-server listening on {}:{} (store {}, blobs {}, {} workers, {} ingest threads{}{})",
+                     f.host, bound_port, f.store.empty() ? "sqlite in " + f.data_dir : worker::RedactDatabaseUrl(f.store),
+                     blob_dir, !mo.run_jobs ? 0u : mo.workers ? mo.workers : std::thread::hardware_concurrency(),
                      ingest.threads(),
                      f.metrics.empty() ? "" : ", metrics on http://", f.metrics.empty() ? "" : f.metrics + "/metrics");
         std::printf("listening on %s:%d\n", f.host.c_str(), bound_port);

@@ -11,14 +11,17 @@
 #include "surfel/base/error.h"
 #include "surfel/io/cloud_io.h"
 #include "surfel/io/file_bytes.h"
+#include "surfel/worker/job_manager_detail.h"
 #include "surfel/worker/job_kind.h"
 #include "surfel/worker/job_state.h"
 #include "surfel/worker/status.h"
 
 namespace surfel::worker {
 namespace {
-
 using Clock = std::chrono::steady_clock;
+}  // namespace
+
+namespace detail {
 
 std::string NewJobId() {
     static std::mutex mutex;
@@ -44,7 +47,11 @@ v1::JobEvent FinishedEvent(const v1::Job& job) {
     return e;
 }
 
-}  // namespace
+}  // namespace detail
+
+using detail::FailedEvent;
+using detail::FinishedEvent;
+using detail::NewJobId;
 
 std::string JobKey(const v1::JobSpec& spec) {
     v1::JobSpec copy = spec;
@@ -59,21 +66,19 @@ std::string JobKey(const v1::JobSpec& spec) {
     return Sha256Hex(bytes);
 }
 
-struct JobManager::RunState {
-    v1::Job job;  // live copy: stage and fraction
-    std::atomic<bool> cancel{false};
-    std::atomic<bool> requeue{false};
-    Clock::time_point deadline = Clock::time_point::max();
-};
-
 JobManager::JobManager(Store& store, ManagerOptions options, TransitionHook hook)
-    : store_(store), options_(options), hook_(std::move(hook)) {
+    : store_(store), options_(options), hook_(std::move(hook)), shared_(store.shared()) {
     if (options_.workers == 0) options_.workers = std::max(1u, std::thread::hardware_concurrency());
+    if (!options_.run_jobs && !shared_)
+        throw Error(ErrorCode::kInvalidArgument,
+                    "workers: 0 (an API node) needs a shared store (--store postgres://...); "
+                    "with SQLite no other process would run the jobs");
 }
 
 JobManager::~JobManager() { Shutdown(0); }
 
 void JobManager::Start() {
+    if (shared_) return SharedStart();
     {
         std::lock_guard lock(mutex_);
         for (v1::Job& job : store_.Unfinished()) {
@@ -120,6 +125,7 @@ void JobManager::NotifyQueuePositions() {
 }
 
 v1::Job JobManager::Submit(const v1::JobSpec& spec) {
+    if (shared_) return SharedSubmit(spec);
     ValidateSpec(spec);
     const JobKind& kind = KindOf(spec);
     for (const CloudInput& input : kind.Inputs(spec))
@@ -170,6 +176,7 @@ std::vector<v1::Job> JobManager::List(std::size_t limit, v1::JobState state) con
 }
 
 v1::Job JobManager::Cancel(const std::string& id) {
+    if (shared_) return SharedCancel(id);
     std::lock_guard lock(mutex_);
     if (auto it = running_.find(id); it != running_.end()) {
         it->second->cancel = true;
@@ -201,8 +208,10 @@ std::optional<v1::Job> JobManager::Subscribe(const std::string& id, JobListener 
     first.set_job_id(id);
     *first.mutable_state() = *job;
     listener(first);
+    if (shared_) followed_[id] = Followed{job->state(), job->fraction()};
     if (job->state() == v1::QUEUED) {
-        const auto pos = std::find(queue_.begin(), queue_.end(), id) - queue_.begin();
+        const auto pos = shared_ ? store_.QueuePosition(id)
+                                 : std::find(queue_.begin(), queue_.end(), id) - queue_.begin();
         v1::JobEvent q;
         q.set_job_id(id);
         q.mutable_queued()->set_position(static_cast<std::uint32_t>(pos));
@@ -217,10 +226,20 @@ void JobManager::Unsubscribe(const std::string& id, std::uint64_t token) {
     auto it = listeners_.find(id);
     if (it == listeners_.end()) return;
     it->second.erase(token);
-    if (it->second.empty()) listeners_.erase(it);
+    if (it->second.empty()) {
+        listeners_.erase(it);
+        followed_.erase(id);
+    }
 }
 
 std::size_t JobManager::QueueDepth() const {
+    if (shared_) {
+        try {
+            return store_.CountQueued();
+        } catch (const Error&) {  // the database is unreachable: nothing known
+            return 0;
+        }
+    }
     std::lock_guard lock(mutex_);
     return queue_.size();
 }
@@ -353,6 +372,7 @@ void JobManager::Execute(const std::string& id) {
 }
 
 void JobManager::Shutdown(std::int64_t grace_ms) {
+    if (shared_) return SharedShutdown(grace_ms);
     {
         std::lock_guard lock(mutex_);
         if (stopping_ && workers_.empty()) return;

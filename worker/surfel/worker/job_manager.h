@@ -2,8 +2,16 @@
 /// \file
 /// The job queue and worker pool: jobs are persisted in the Store before Submit returns, run on
 /// N worker threads through RunJob (job_kind.h), report progress to subscribers, and can be cancelled (the
-/// core's progress hook returns false within one progress step). After a restart, jobs left
-/// queued or running are queued again.
+/// core's progress hook returns false within one progress step).
+///
+/// Two modes, chosen by the store:
+///  - single node (SQLite, Store::shared() false): an in-memory FIFO over the store; after a
+///    restart, jobs left queued or running are queued again.
+///  - shared queue (PostgreSQL): no in-memory queue. Worker threads claim with
+///    Store::ClaimNext and hold a lease renewed by Heartbeat; every process sweeps expired
+///    leases (RequeueExpired). Progress, cancel and "job finished" cross processes as hints
+///    (Store::Publish/Listen) and are also polled every `poll_ms`, so a lost hint costs latency
+///    only. Watchers of a job run elsewhere follow the table. See docs/scale-out.md.
 
 #include <atomic>
 #include <condition_variable>
@@ -29,6 +37,17 @@ struct ManagerOptions {
     std::size_t max_queued = 256;  ///< Jobs waiting; more -> Error(kResourceExhausted).
     std::uint64_t max_points = 50'000'000;  ///< Parser limit when loading clouds.
     std::size_t cloud_cache = 8;   ///< Parsed clouds kept in memory.
+    /// False: run no jobs here (an API node; a shared store only, where surfel-worker runs them).
+    bool run_jobs = true;
+    /// Shared queue: the lease of a claimed job (ms); renewed every lease_ms / 3.
+    std::int64_t lease_ms = 30'000;
+    /// Shared queue: leases that may expire before the job fails (>= 1).
+    int max_attempts = 3;
+    /// Shared queue: how often the tables are read when no hint arrived (ms): idle claims,
+    /// cancel flags of running jobs, watched jobs run elsewhere.
+    std::int64_t poll_ms = 250;
+    /// Shared queue: the lease owner's prefix (default "<host>:<pid>"); thread i appends "/i".
+    std::string worker_name;
 };
 
 /// Called for every event of one job (from worker threads or the caller of Submit/Cancel). Must
@@ -65,7 +84,8 @@ public:
     std::size_t Running() const;
 
     /// Stops taking jobs off the queue; running ones get `grace_ms` to finish, then are
-    /// interrupted and left QUEUED in the store, to run again after a restart.
+    /// interrupted and left QUEUED in the store, to run again after a restart (shared queue:
+    /// their leases are released, so another worker takes them at once).
     void Shutdown(std::int64_t grace_ms);
 
     /// Loads a stored cloud (cached). Throws kNotFound.
@@ -91,6 +111,38 @@ private:
     std::uint64_t next_token_ = 1;
     bool stopping_ = false;
     std::vector<std::thread> workers_;
+
+    // ---- the shared queue (job_manager_shared.cpp); used when store_.shared()
+    struct Followed {
+        v1::JobState state = v1::JOB_STATE_UNSPECIFIED;
+        double fraction = -1;
+    };
+    void SharedStart();
+    v1::Job SharedSubmit(const v1::JobSpec& spec);
+    v1::Job SharedCancel(const std::string& id);
+    void SharedShutdown(std::int64_t grace_ms);
+    void ClaimLoop(std::size_t index);
+    void ExecuteLeased(LeasedJob leased);
+    /// Writes a leased job's last record, retrying while the database is unreachable (up to
+    /// `kFinishRetryMs`); false when the lease was lost.
+    bool FinishLeased(const v1::Job& job, const std::string& owner);
+    void MaintenanceLoop();
+    void OnHint(const std::string& payload);
+    void PublishHint(char kind, const std::string& id, const std::string& extra = "");
+    /// Reads watched jobs run by other processes and sends their changes to the watchers.
+    void FollowWatched(const std::vector<std::string>& ids);
+
+    bool shared_ = false;
+    std::string origin_;  ///< this process in hints (lease owner prefix)
+    std::unique_ptr<Subscription> hints_;
+    std::thread maintenance_;
+    std::condition_variable maintenance_wake_;
+    bool maintenance_stop_ = false;
+    bool follow_all_ = false;
+    std::vector<std::string> follow_dirty_;
+    std::map<std::string, Followed> followed_;
+    std::uint64_t claim_generation_ = 0;  ///< bumped by "new job" hints
+    bool shut_down_ = false;
 
     std::mutex cache_mutex_;
     std::deque<std::pair<std::string, std::shared_ptr<const PointCloud>>> cache_;

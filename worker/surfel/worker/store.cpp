@@ -26,6 +26,7 @@ Store::Store(const std::string& data_dir) : data_dir_(data_dir) {
 }
 
 Store::~Store() = default;
+Subscription::~Subscription() = default;
 
 std::string Store::CloudPath(const std::string& id) const { return data_dir_ + "/clouds/" + id; }
 std::string Store::ResultPath(const std::string& id) const { return data_dir_ + "/results/" + id; }
@@ -56,6 +57,16 @@ std::unique_ptr<Store> OpenStore(const std::string& url_or_dir, const std::strin
                 ": unknown scheme (use sqlite, sqlite:FILE, a directory or postgres://...)");
     const std::string blobs = data_dir.empty() ? url_or_dir : data_dir;
     return std::make_unique<SqliteStore>(url_or_dir + "/surfel.db", blobs);
+}
+
+std::string BlobDirFromFlag(const std::string& blobs, const std::string& default_dir) {
+    if (blobs.empty()) return default_dir;
+    if (blobs.starts_with("dir:") && blobs.size() > 4) return blobs.substr(4);
+    if (blobs == "postgres")
+        throw Error(ErrorCode::kInvalidArgument,
+                    "--blobs postgres: large-object blobs are not built yet; use dir:PATH (a "
+                    "directory every server and worker mounts)");
+    throw Error(ErrorCode::kInvalidArgument, "--blobs " + blobs + ": expected dir:PATH");
 }
 
 std::int64_t NowUnixMs() {
@@ -94,6 +105,14 @@ v1::Job ExpiredRecord(v1::Job job, int attempts, int max_attempts, const std::st
     job.set_finished_unix_ms(now_unix_ms);
     job.set_status_code(ToStatusCode(ErrorCode::kUnavailable));
     job.set_status_message(LeaseExhaustedMessage(attempts, max_attempts, last_owner));
+    return job;
+}
+
+v1::Job CancelledWhileQueuedRecord(v1::Job job, std::int64_t now_unix_ms) {
+    job.set_state(v1::CANCELLED);
+    job.set_finished_unix_ms(now_unix_ms);
+    job.set_status_code(ToStatusCode(ErrorCode::kCancelled));
+    job.set_status_message("cancelled while queued");
     return job;
 }
 

@@ -20,6 +20,7 @@
 /// statement the database refuses.
 
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <optional>
 #include <string>
@@ -41,6 +42,16 @@ struct LeasedJob {
     /// Earlier leases of this job that expired (0 on a first run).
     int attempts = 0;
 };
+
+/// A running delivery of cross-process hints (Store::Listen); destroying it stops the delivery.
+class Subscription {
+public:
+    virtual ~Subscription();
+};
+
+/// Receives one hint's payload; "" after the delivery was interrupted (a reconnect), when any
+/// hint may have been missed and the receiver should re-read what it follows.
+using HintFn = std::function<void(const std::string& payload)>;
 
 /// The store interface. The blob paths are shared by all backends; the records are the backend's.
 class Store {
@@ -74,7 +85,15 @@ public:
     /// Jobs left QUEUED or RUNNING (by a crash or a shutdown), oldest first.
     virtual std::vector<v1::Job> Unfinished() const = 0;
 
-    // ---- the shared queue: claim, lease, heartbeat, requeue (not used by the JobManager yet)
+    /// Queued jobs (the depth of the shared queue).
+    virtual std::size_t CountQueued() const = 0;
+    /// How many QUEUED jobs come before this one (0 when it is next or not queued).
+    virtual std::uint32_t QueuePosition(const std::string& job_id) const = 0;
+
+    // ---- the shared queue: claim, lease, heartbeat, requeue, cancel. The JobManager uses it
+    // when shared() is true; a single-node SQLite server keeps its in-memory queue.
+    /// True when several processes share this store's jobs (PostgreSQL).
+    virtual bool shared() const { return false; }
     /// Claims the oldest QUEUED job for `owner`: one short statement (PostgreSQL:
     /// `SELECT … FOR UPDATE SKIP LOCKED`, so concurrent claimers never get the same job and never
     /// wait for each other), which sets the job RUNNING with a lease of `lease_ms` from now.
@@ -85,13 +104,32 @@ public:
     virtual bool Heartbeat(const std::string& job_id, const std::string& owner,
                            std::int64_t lease_ms) = 0;
     /// Writes a job (a progress update or its end) only while `owner` holds its lease; a final
-    /// state releases the lease. False, changing nothing, when the lease was lost.
+    /// state releases the lease, and so does QUEUED (a worker giving a job back, e.g. on
+    /// SIGTERM, without counting an attempt). False, changing nothing, when the lease was lost.
     virtual bool PutLeasedJob(const v1::Job& job, const std::string& owner) = 0;
     /// Takes back every RUNNING job whose lease expired before `now_unix_ms`: attempts + 1, and
     /// QUEUED again, or FAILED (UNAVAILABLE, a message naming the attempts and the last owner)
     /// once attempts reaches `max_attempts` (>= 1). Returns those jobs as now stored.
     /// Jobs running without a lease (the single-node JobManager) are never touched.
     virtual std::vector<v1::Job> RequeueExpired(std::int64_t now_unix_ms, int max_attempts) = 0;
+    /// Asks a job to stop, from any process: a QUEUED job becomes CANCELLED at once (status
+    /// CANCELLED, "cancelled while queued"); a RUNNING one gets its cancel_requested flag, which
+    /// its leaseholder reads (CancelRequested) and acts on. Returns the job as stored after it;
+    /// nullopt when unknown. A final job is returned unchanged.
+    virtual std::optional<v1::Job> RequestCancel(const std::string& job_id) = 0;
+    /// Whether RequestCancel flagged this job.
+    virtual bool CancelRequested(const std::string& job_id) const = 0;
+
+    // ---- cross-process hints (PostgreSQL LISTEN/NOTIFY; nothing for SQLite). A hint is a
+    // wake-up only: it may be lost (a reconnect, a crash before it was sent), so receivers also
+    // poll the tables, which stay the state of record.
+    /// Sends a small payload (< 8000 bytes: ids and fractions) to every Listen of every process
+    /// on this database, at once (no transaction). Throws kUnavailable when the database is down.
+    virtual void Publish(const std::string& /*payload*/) {}
+    /// Delivers every hint published from now on to `fn`, on a thread of its own with its own
+    /// connection, reconnecting with backoff (then `fn("")`). nullptr when the backend has no
+    /// hints (SQLite: one process).
+    virtual std::unique_ptr<Subscription> Listen(HintFn /*fn*/) { return nullptr; }
 
 protected:
     /// Creates (when missing) the blob directories under `data_dir`. Throws kInvalidArgument.
@@ -126,6 +164,10 @@ public:
                    std::int64_t lease_ms) override;
     bool PutLeasedJob(const v1::Job& job, const std::string& owner) override;
     std::vector<v1::Job> RequeueExpired(std::int64_t now_unix_ms, int max_attempts) override;
+    std::optional<v1::Job> RequestCancel(const std::string& job_id) override;
+    bool CancelRequested(const std::string& job_id) const override;
+    std::size_t CountQueued() const override;
+    std::uint32_t QueuePosition(const std::string& job_id) const override;
 
 private:
     bool DeleteCloudRecord(const std::string& id) override;
@@ -142,6 +184,10 @@ private:
 ///                                    there too when `data_dir` is empty
 /// Throws kInvalidArgument for another scheme, and whatever the backend's constructor throws.
 std::unique_ptr<Store> OpenStore(const std::string& url_or_dir, const std::string& data_dir);
+
+/// The blob directory named by a `--blobs` flag: "dir:PATH" -> PATH; "" -> `default_dir`.
+/// Throws kInvalidArgument for anything else ("postgres" large objects are not built yet).
+std::string BlobDirFromFlag(const std::string& blobs, const std::string& default_dir);
 
 /// Milliseconds since the Unix epoch.
 std::int64_t NowUnixMs();

@@ -27,6 +27,9 @@ void CheckSchemaNotNewer(std::int64_t applied_version, const std::string& where)
 /// Throws kInvalidArgument unless lease_ms > 0 and the owner is not empty.
 void CheckLease(const std::string& owner, std::int64_t lease_ms);
 
+/// The record of a QUEUED job cancelled by RequestCancel.
+v1::Job CancelledWhileQueuedRecord(v1::Job job, std::int64_t now_unix_ms);
+
 /// Throws kInvalidArgument unless max_attempts >= 1.
 void CheckMaxAttempts(int max_attempts);
 

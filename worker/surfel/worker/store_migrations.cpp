@@ -10,6 +10,8 @@ namespace {
 // into columns what is searched (`state` is kept equal to the record's state).
 // Version 2 adds the lease of the shared queue: who runs the job, until when, and how many
 // earlier leases expired.
+// Version 3 adds the cancel request of the shared queue: any server sets it, the leaseholder
+// (on another machine) stops the job.
 constexpr std::array kMigrations{
     Migration{1, "clouds and jobs",
               "CREATE TABLE IF NOT EXISTS clouds (id TEXT PRIMARY KEY, record BLOB NOT NULL, "
@@ -35,6 +37,9 @@ constexpr std::array kMigrations{
               "ALTER TABLE jobs ADD COLUMN lease_owner TEXT;"
               "ALTER TABLE jobs ADD COLUMN lease_expires_ms BIGINT;"
               "CREATE INDEX jobs_state_seq ON jobs(state, seq);"},
+    Migration{3, "job cancel requests",
+              "ALTER TABLE jobs ADD COLUMN cancel_requested INTEGER NOT NULL DEFAULT 0;",
+              "ALTER TABLE jobs ADD COLUMN cancel_requested INTEGER NOT NULL DEFAULT 0;"},
 };
 
 }  // namespace

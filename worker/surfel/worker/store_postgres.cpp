@@ -5,8 +5,14 @@
 #include <endian.h>
 #include <libpq-fe.h>
 
+#include <poll.h>
+
+#include <atomic>
+#include <chrono>
+#include <condition_variable>
 #include <cstring>
 #include <mutex>
+#include <thread>
 
 #include "surfel/base/error.h"
 #include "surfel/worker/job_state.h"
@@ -345,7 +351,7 @@ bool PostgresStore::Heartbeat(const std::string& job_id, const std::string& owne
 bool PostgresStore::PutLeasedJob(const v1::Job& job, const std::string& owner) {
     store_detail::CheckLease(owner, 1);
     std::lock_guard lock(impl_->mutex);
-    const bool ends = IsFinal(job.state());
+    const bool ends = IsFinal(job.state()) || job.state() == v1::QUEUED;
     Result r = impl_->Exec(
         "UPDATE jobs SET state = $1, record = $2, "
         "lease_owner = CASE WHEN $3::boolean THEN NULL ELSE lease_owner END, "
@@ -388,6 +394,137 @@ std::vector<v1::Job> PostgresStore::RequeueExpired(std::int64_t now_unix_ms, int
     }
     tx.Commit();
     return out;
+}
+
+std::optional<v1::Job> PostgresStore::RequestCancel(const std::string& job_id) {
+    std::lock_guard lock(impl_->mutex);
+    const Impl& db = *impl_;
+    Impl::Transaction tx(db);
+    Result r = db.Exec("SELECT record FROM jobs WHERE id = $1 FOR UPDATE", Params().Text(job_id));
+    if (PQntuples(r.get()) == 0) return std::nullopt;
+    v1::Job job = ParseJob(Bytes(r.get(), 0, 0));
+    if (job.state() == v1::QUEUED) {
+        job = store_detail::CancelledWhileQueuedRecord(std::move(job), NowUnixMs());
+        db.Exec("UPDATE jobs SET state = $1, record = $2, cancel_requested = 1 WHERE id = $3",
+                Params().Int(job.state()).Bytes(job.SerializeAsString()).Text(job_id),
+                PGRES_COMMAND_OK);
+    } else if (job.state() == v1::RUNNING) {
+        db.Exec("UPDATE jobs SET cancel_requested = 1 WHERE id = $1", Params().Text(job_id),
+                PGRES_COMMAND_OK);
+    }
+    tx.Commit();
+    return job;
+}
+
+bool PostgresStore::CancelRequested(const std::string& job_id) const {
+    std::lock_guard lock(impl_->mutex);
+    Result r = impl_->Exec("SELECT cancel_requested FROM jobs WHERE id = $1", Params().Text(job_id));
+    return PQntuples(r.get()) > 0 && Int(r.get(), 0, 0) != 0;
+}
+
+std::size_t PostgresStore::CountQueued() const {
+    std::lock_guard lock(impl_->mutex);
+    Result r = impl_->Exec("SELECT COUNT(*)::bigint FROM jobs WHERE state = $1",
+                           Params().Int(v1::QUEUED));
+    return static_cast<std::size_t>(Int(r.get(), 0, 0));
+}
+
+std::uint32_t PostgresStore::QueuePosition(const std::string& job_id) const {
+    std::lock_guard lock(impl_->mutex);
+    Result r = impl_->Exec(
+        "SELECT COUNT(*)::bigint FROM jobs WHERE state = $1 AND seq < "
+        "(SELECT seq FROM jobs WHERE id = $2 AND state = $1)",
+        Params().Int(v1::QUEUED).Text(job_id));
+    return static_cast<std::uint32_t>(Int(r.get(), 0, 0));
+}
+
+// ---- hints: NOTIFY on the store's connection, LISTEN on a connection of the listener's own
+
+namespace {
+constexpr const char* kHintChannel = "surfel_hints";
+
+/// A thread that holds `LISTEN surfel_hints` on its own connection and hands each payload to
+/// the callback; it reconnects with backoff when the connection drops.
+class HintListener final : public Subscription {
+public:
+    HintListener(std::string conninfo, std::string url, HintFn fn)
+        : conninfo_(std::move(conninfo)), url_(std::move(url)), fn_(std::move(fn)) {
+        thread_ = std::thread([this] { Loop(); });
+    }
+    ~HintListener() override {
+        {
+            std::lock_guard lock(mutex_);
+            stop_ = true;
+        }
+        wake_.notify_all();
+        thread_.join();
+    }
+
+private:
+    /// Sleeps up to `ms` unless stopped; false when stopped.
+    bool Sleep(int ms) {
+        std::unique_lock lock(mutex_);
+        return !wake_.wait_for(lock, std::chrono::milliseconds(ms), [&] { return stop_; });
+    }
+    bool stopped() {
+        std::lock_guard lock(mutex_);
+        return stop_;
+    }
+
+    void Loop() {
+        int backoff_ms = 100;
+        bool first = true;
+        while (!stopped()) {
+            PGconn* c = PQconnectdb(conninfo_.c_str());
+            bool listening = false;
+            if (c && PQstatus(c) == CONNECTION_OK) {
+                PQsetNoticeProcessor(c, [](void*, const char*) {}, nullptr);
+                PGresult* r = PQexec(c, (std::string("LISTEN ") + kHintChannel).c_str());
+                listening = r && PQresultStatus(r) == PGRES_COMMAND_OK;
+                PQclear(r);
+            }
+            if (!listening) {
+                if (c) PQfinish(c);
+                if (!Sleep(backoff_ms)) return;
+                backoff_ms = std::min(backoff_ms * 2, 2000);
+                continue;
+            }
+            backoff_ms = 100;
+            if (!first) fn_("");  // hints may have been missed while disconnected
+            first = false;
+            while (!stopped()) {
+                pollfd p{PQsocket(c), POLLIN, 0};
+                if (::poll(&p, 1, 100) < 0) continue;
+                if (PQconsumeInput(c) == 0 || PQstatus(c) != CONNECTION_OK) break;
+                while (PGnotify* n = PQnotifies(c)) {
+                    const std::string payload = n->extra ? n->extra : "";
+                    PQfreemem(n);
+                    try {
+                        fn_(payload);
+                    } catch (...) {  // a receiver's failure must not stop the delivery
+                    }
+                }
+            }
+            PQfinish(c);
+        }
+    }
+
+    std::string conninfo_, url_;
+    HintFn fn_;
+    std::mutex mutex_;
+    std::condition_variable wake_;
+    bool stop_ = false;
+    std::thread thread_;
+};
+}  // namespace
+
+void PostgresStore::Publish(const std::string& payload) {
+    std::lock_guard lock(impl_->mutex);
+    impl_->Exec("SELECT pg_notify($1, $2)", Params().Text(kHintChannel).Text(payload));
+}
+
+std::unique_ptr<Subscription> PostgresStore::Listen(HintFn fn) {
+    return std::make_unique<HintListener>(impl_->conninfo, impl_->url, std::move(fn));
 }
 
 }  // namespace surfel::worker

@@ -2,6 +2,7 @@
 /// \file
 /// The PostgreSQL backend of the store (libpq), for many servers and workers on separate
 /// machines sharing one database; the blobs stay in a directory (a shared mount) for now.
+/// Cross-process hints are LISTEN/NOTIFY on the channel `surfel_hints`.
 ///
 /// Each PostgresStore holds one connection, used by one thread at a time (a mutex), so a
 /// process that wants parallel claims opens one store per claiming thread. A lost connection is
@@ -35,6 +36,16 @@ public:
                    std::int64_t lease_ms) override;
     bool PutLeasedJob(const v1::Job& job, const std::string& owner) override;
     std::vector<v1::Job> RequeueExpired(std::int64_t now_unix_ms, int max_attempts) override;
+    std::optional<v1::Job> RequestCancel(const std::string& job_id) override;
+    bool CancelRequested(const std::string& job_id) const override;
+    std::size_t CountQueued() const override;
+    std::uint32_t QueuePosition(const std::string& job_id) const override;
+    bool shared() const override { return true; }
+    /// `SELECT pg_notify('surfel_hints', payload)`.
+    void Publish(const std::string& payload) override;
+    /// `LISTEN surfel_hints` on a connection of its own, polled by a thread; a lost connection is
+    /// re-established with backoff (100 ms doubling to 2 s), then `fn("")`.
+    std::unique_ptr<Subscription> Listen(HintFn fn) override;
 
 private:
     bool DeleteCloudRecord(const std::string& id) override;

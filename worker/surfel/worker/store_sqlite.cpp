@@ -229,7 +229,7 @@ bool SqliteStore::PutLeasedJob(const v1::Job& job, const std::string& owner) {
                         "lease_expires_ms = CASE WHEN ? THEN NULL ELSE lease_expires_ms END "
                         "WHERE id = ? AND lease_owner = ? AND state = ?");
     const std::string blob = job.SerializeAsString();
-    const int ends = IsFinal(job.state()) ? 1 : 0;
+    const int ends = IsFinal(job.state()) || job.state() == v1::QUEUED ? 1 : 0;
     q.bind(1, static_cast<int>(job.state()));
     BindRecord(q, 2, blob);
     q.bind(3, ends);
@@ -279,6 +279,60 @@ std::vector<v1::Job> SqliteStore::RequeueExpired(std::int64_t now_unix_ms, int m
     }
     tx.commit();
     return out;
+}
+
+std::optional<v1::Job> SqliteStore::RequestCancel(const std::string& job_id) {
+    std::lock_guard lock(impl_->mutex);
+    auto& db = impl_->db;
+    SQLite::Transaction tx(db, SQLite::TransactionBehavior::IMMEDIATE);  // rolled back unless committed
+    SQLite::Statement pick(db, "SELECT record FROM jobs WHERE id = ?");
+    pick.bind(1, job_id);
+    if (!pick.executeStep()) return std::nullopt;
+    v1::Job job = ParseJob(pick.getColumn(0));
+    pick.reset();
+    if (job.state() == v1::QUEUED) {
+        job = store_detail::CancelledWhileQueuedRecord(std::move(job), NowUnixMs());
+        SQLite::Statement q(db, "UPDATE jobs SET state = ?, record = ?, cancel_requested = 1 "
+                                "WHERE id = ?");
+        const std::string blob = job.SerializeAsString();
+        q.bind(1, static_cast<int>(job.state()));
+        BindRecord(q, 2, blob);
+        q.bind(3, job_id);
+        q.exec();
+    } else if (job.state() == v1::RUNNING) {
+        SQLite::Statement q(db, "UPDATE jobs SET cancel_requested = 1 WHERE id = ?");
+        q.bind(1, job_id);
+        q.exec();
+    }
+    tx.commit();
+    return job;
+}
+
+bool SqliteStore::CancelRequested(const std::string& job_id) const {
+    std::lock_guard lock(impl_->mutex);
+    SQLite::Statement q(impl_->db, "SELECT cancel_requested FROM jobs WHERE id = ?");
+    q.bind(1, job_id);
+    return q.executeStep() && q.getColumn(0).getInt() != 0;
+}
+
+std::size_t SqliteStore::CountQueued() const {
+    std::lock_guard lock(impl_->mutex);
+    SQLite::Statement q(impl_->db, "SELECT COUNT(*) FROM jobs WHERE state = ?");
+    q.bind(1, static_cast<int>(v1::QUEUED));
+    q.executeStep();
+    return static_cast<std::size_t>(q.getColumn(0).getInt64());
+}
+
+std::uint32_t SqliteStore::QueuePosition(const std::string& job_id) const {
+    std::lock_guard lock(impl_->mutex);
+    SQLite::Statement q(impl_->db,
+                        "SELECT COUNT(*) FROM jobs WHERE state = ? AND seq < "
+                        "(SELECT seq FROM jobs WHERE id = ? AND state = ?)");
+    q.bind(1, static_cast<int>(v1::QUEUED));
+    q.bind(2, job_id);
+    q.bind(3, static_cast<int>(v1::QUEUED));
+    q.executeStep();
+    return static_cast<std::uint32_t>(q.getColumn(0).getInt64());
 }
 
 }  // namespace surfel::worker

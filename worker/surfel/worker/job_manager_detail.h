@@ -1,0 +1,37 @@
+#pragma once
+/// \file
+/// Pieces the two modes of the JobManager share (job_manager.cpp, job_manager_shared.cpp).
+/// Internal to worker/.
+
+#include <atomic>
+#include <chrono>
+#include <string>
+
+#include "surfel/v1/surfel.pb.h"
+#include "surfel/worker/job_manager.h"
+
+namespace surfel::worker {
+
+/// A job running in this process.
+struct JobManager::RunState {
+    v1::Job job;  ///< live copy: stage and fraction
+    std::atomic<bool> cancel{false};
+    std::atomic<bool> requeue{false};
+    std::chrono::steady_clock::time_point deadline = std::chrono::steady_clock::time_point::max();
+    // shared queue only
+    std::string owner;              ///< the lease holder's name
+    std::atomic<bool> lost{false};  ///< the lease was lost: stop, write nothing
+};
+
+}  // namespace surfel::worker
+
+namespace surfel::worker::detail {
+
+/// A new job id: "j" and 16 random hex digits.
+std::string NewJobId();
+/// The `failed` event of a FAILED or CANCELLED job (its status code and message).
+v1::JobEvent FailedEvent(const v1::Job& job);
+/// The `finished` event of a SUCCEEDED job (its result).
+v1::JobEvent FinishedEvent(const v1::Job& job);
+
+}  // namespace surfel::worker::detail
