@@ -130,6 +130,8 @@ struct Superset {
     float reach = 0.0f;
     std::vector<float> x, y, z;
     std::vector<std::uint32_t> index;
+    std::vector<float> d2;            // scratch: squared distances to the current gather's origin
+    std::vector<std::uint32_t> keep;  // scratch: positions of the accepted points
     std::size_t n = 0;
 };
 thread_local Superset tls_superset;
@@ -182,24 +184,38 @@ WeightedMoments GatherAround(const UniformGrid& grid, std::uint64_t owner, const
         // Covered when |o - c| + radius <= reach, less a hair for the rounding of these floats.
         const auto covers = [&] { return s.owner == owner && (o - s.c).norm() + radius <= s.reach * (1.0f - 1e-4f); };
         if (!covers()) FillSuperset(grid, owner, o, radius + kSupersetMargin * static_cast<float>(h), s);
-        // Sized for every candidate; only the accepted ones are kept (PushWithin's float test).
-        nb.Reserve(s.n);
-        std::size_t n = 0;
+        // Three passes: the squared distances (vectorised), the accepted positions (a
+        // branch-free compaction), then the accepted offsets. d2 is Eigen's squaredNorm of the
+        // float offset, x^2 + (y^2 + z^2), as PushWithin computes it, so the test and the
+        // stored values are PushWithin's to the bit.
+        const std::size_t m = s.n;
+        if (s.d2.size() < m) s.d2.resize(s.index.size()), s.keep.resize(s.index.size());
         const float r2 = radius * radius;
         const float ox = o.x(), oy = o.y(), oz = o.z();
         const float *SX = s.x.data(), *SY = s.y.data(), *SZ = s.z.data();
+        float* SD = s.d2.data();
+#pragma omp simd
+        for (std::size_t j = 0; j < m; ++j) {
+            const float ex = SX[j] - ox, ey = SY[j] - oy, ez = SZ[j] - oz;
+            SD[j] = ex * ex + (ey * ey + ez * ez);
+        }
+        std::uint32_t* K = s.keep.data();
+        std::size_t n = 0;
+        for (std::size_t j = 0; j < m; ++j) {
+            K[n] = static_cast<std::uint32_t>(j);
+            n += SD[j] <= r2 ? 1 : 0;
+        }
+        nb.Reserve(n);
         const std::uint32_t* SI = s.index.data();
         float *X = nb.x.data(), *Y = nb.y.data(), *Z = nb.z.data(), *D = nb.d2.data();
         std::uint32_t* I = nb.index.data();
-        for (std::size_t j = 0; j < s.n; ++j) {
-            const float ex = SX[j] - ox, ey = SY[j] - oy, ez = SZ[j] - oz;
-            const float df = Vec3f(ex, ey, ez).squaredNorm();
-            X[n] = ex;
-            Y[n] = ey;
-            Z[n] = ez;
-            D[n] = df;
-            I[n] = SI[j];
-            n += df <= r2 ? 1 : 0;
+        for (std::size_t k = 0; k < n; ++k) {
+            const std::uint32_t j = K[k];
+            X[k] = SX[j] - ox;
+            Y[k] = SY[j] - oy;
+            Z[k] = SZ[j] - oz;
+            D[k] = SD[j];
+            I[k] = SI[j];
         }
         nb.Resize(n);
     } else {
