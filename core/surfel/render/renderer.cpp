@@ -100,7 +100,9 @@ struct RayContext {
     RTCIntersectContext embree;
     std::optional<AaHit> hit;
     AaCounters counters;
-    double gamma_min = -1.0, gamma_max = 2.0;  // shadow rays: only balls with gamma in [min, max)
+    // Shadow rays: balls with gamma < kGammaFirst are not tried during the traversal but kept
+    // here, in traversal order, for the second stage (see InShadow).
+    std::vector<unsigned>* deferred = nullptr;
     const HitFilter* filter = nullptr;         // RenderOptions::hit_filter; null = accept every hit
     std::exception_ptr error;                  // the first exception a callback caught
 };
@@ -191,8 +193,12 @@ void IntersectFn(const RTCIntersectFunctionNArguments* args) {
     });
 }
 
-// Any hit: the ray is blocked (tfar = -inf) by a converged, accepted hit in a ball of the pass's
-// gamma range. A caught exception also ends the traversal.
+// Shadow rays try the balls the ray passes near the centre first (paper, section 5).
+constexpr double kGammaFirst = 0.5;
+
+// Any hit: the ray is blocked (tfar = -inf) by a converged, accepted hit in a ball with gamma >=
+// kGammaFirst; a ball with a smaller gamma is deferred (ctx->deferred). A caught exception also
+// ends the traversal.
 void OccludedFn(const RTCOccludedFunctionNArguments* args) {
     if (!args->valid[0]) return;
     auto* ctx = reinterpret_cast<RayContext*>(args->context);
@@ -203,7 +209,10 @@ void OccludedFn(const RTCOccludedFunctionNArguments* args) {
         const Vec3d o(ray->org_x, ray->org_y, ray->org_z), d(ray->dir_x, ray->dir_y, ray->dir_z);
         double t0, t1, gamma;
         if (!BallInterval(*s, args->primID, o, d, ray->tnear, ray->tfar, &t0, &t1, &gamma)) return;
-        if (gamma < ctx->gamma_min || gamma >= ctx->gamma_max) return;
+        if (gamma < kGammaFirst) {
+            ctx->deferred->push_back(args->primID);
+            return;
+        }
         const auto hit = s->surface->IntersectInBall(args->primID, o, d, t0, t1, &ctx->counters);
         if (hit && Accepts(*ctx, *hit)) ray->tfar = -std::numeric_limits<float>::infinity();
     });
@@ -222,7 +231,7 @@ double Jitter(std::uint64_t x) {
 class EmbreeScene {
 public:
     /// Builds the BVH over the balls; rethrows what a bounds callback caught.
-    EmbreeScene(SceneData* data, std::size_t count) {
+    EmbreeScene(SceneData* data, std::size_t count) : data_(data) {
         device_ = rtcNewDevice(nullptr);
         if (!device_) throw Error(ErrorCode::kInternal, "Embree device creation failed");
         scene_ = rtcNewScene(device_);
@@ -252,8 +261,10 @@ public:
         rtcReleaseDevice(device_);
     }
     RTCScene scene() const { return scene_; }
+    const SceneData* data() const { return data_; }
 
 private:
+    const SceneData* data_;
     RTCDevice device_ = nullptr;
     RTCScene scene_ = nullptr;
 };
@@ -314,23 +325,29 @@ struct PixelSum {
 // Occlusion: whether the shadow ray from `hit` (normal `n`, towards the camera) to a light in
 // direction `ldir` at distance `ldist` is blocked. It starts half an h off the surface so that it
 // does not find its own origin, and runs as the paper's section 5 says: first the balls the ray
-// passes near the centre (gamma priority), then the rest; each ball is tried in one pass only.
+// passes near the centre (gamma >= kGammaFirst), then the rest; each ball is tried once. One
+// traversal: the rest are the balls it deferred, tried in its order once it found no block (the
+// balls and the order a second traversal restricted to gamma < kGammaFirst would give).
 bool InShadow(const Integrator& I, const AaHit& hit, const Vec3d& n, const Vec3d& ldir, double ldist,
               RenderStats* stats) {
+    thread_local std::vector<unsigned> deferred;
     const Vec3d so = hit.position + 0.5 * I.h * n;
     RayContext sctx;
     rtcInitIntersectContext(&sctx.embree);
     sctx.filter = &I.opt.hit_filter;
-    bool blocked = false;
-    for (const auto& [gmin, gmax] : {std::pair{0.5, 2.0}, std::pair{-1.0, 0.5}}) {
-        sctx.gamma_min = gmin;
-        sctx.gamma_max = gmax;
-        RTCRayHit sr = MakeRay(so, ldir, 0.0, ldist - 0.5 * I.h);
-        ++stats->shadow_rays;
-        if (Occluded(I.scene, &sctx, &sr.ray)) {
-            blocked = true;
-            break;
-        }
+    deferred.clear();
+    sctx.deferred = &deferred;
+    RTCRayHit sr = MakeRay(so, ldir, 0.0, ldist - 0.5 * I.h);
+    const float tnear = sr.ray.tnear, tfar = sr.ray.tfar;
+    const Vec3d o(sr.ray.org_x, sr.ray.org_y, sr.ray.org_z), d(sr.ray.dir_x, sr.ray.dir_y, sr.ray.dir_z);
+    ++stats->shadow_rays;
+    bool blocked = Occluded(I.scene, &sctx, &sr.ray);
+    const SceneData& data = *I.scene.data();
+    for (std::size_t k = 0; k < deferred.size() && !blocked; ++k) {
+        double t0, t1, gamma;
+        if (!BallInterval(data, deferred[k], o, d, tnear, tfar, &t0, &t1, &gamma)) continue;
+        const auto h = data.surface->IntersectInBall(deferred[k], o, d, t0, t1, &sctx.counters);
+        blocked = h && Accepts(sctx, *h);
     }
     stats->surface.Add(sctx.counters);
     return blocked;

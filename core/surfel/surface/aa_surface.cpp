@@ -39,11 +39,15 @@ struct AaSurface::Impl {
     std::vector<CenterEntry> centers;
     // 0 empty, 1 being computed, 2 ready, 3 ready but undefined (no fit at that centre).
     std::unique_ptr<std::atomic<std::uint8_t>[]> center_state;
+    std::uint64_t id = 0;  // this surface's key in the per-thread neighbour superset
     Impl(const PointCloud& c, const AaOptions& o) : cloud(c), opt(o) {}
 };
 
 namespace {
 thread_local NeighborBatch tls_batch;
+
+// Ids of AaSurface objects (an address can be reused by a later surface; an id is not).
+std::atomic<std::uint64_t> next_surface_id{1};
 
 // Real roots of A t^2 + B t + C = 0 (numerically stable); returns the count.
 int SolveQuadratic(double A, double B, double C, double* r0, double* r1) {
@@ -97,6 +101,7 @@ AaSurface::AaSurface(const PointCloud& cloud, const AaOptions& options)
     if (!(o.h > 0)) throw Error(ErrorCode::kInvalidArgument, "cannot derive h from the cloud (all points coincide); pass h");
     if (o.precision == 0) o.precision = 1e-3f * o.h;
     impl_->grid = std::make_unique<UniformGrid>(cloud.positions, o.cutoff * o.h);
+    impl_->id = next_surface_id.fetch_add(1, std::memory_order_relaxed);
     impl_->centers.resize(cloud.size());
     impl_->center_state.reset(new std::atomic<std::uint8_t>[cloud.size()]);
     for (std::size_t i = 0; i < cloud.size(); ++i) impl_->center_state[i].store(0, std::memory_order_relaxed);
@@ -111,14 +116,114 @@ const PointCloud& AaSurface::cloud() const { return impl_->cloud; }
 float AaSurface::BallRadius(std::uint32_t i) const { return impl_->ball_radius[i]; }
 
 namespace {
+// The points within `reach` of a centre c, in the grid's cell order, as structure of arrays: a
+// per-thread superset of the neighbourhoods of the next gathers. The section-4 iterates of one
+// ray lie a fraction of h apart, and so do the hits of neighbouring pixels of a tile; a gather
+// within `radius` of o whose ball lies inside this one (|o - c| + radius <= reach) filters these
+// points instead of walking the grid's columns (about 3 candidates an accepted neighbour there,
+// against under 2 here). The dense grid visits its points in ascending cell order, so the
+// filtered list is the one the grid walk gives, in the same order, with the same float test:
+// the fits, and the image, are unchanged.
+struct Superset {
+    std::uint64_t owner = 0;  // AaSurface id the points belong to; 0 = empty
+    Vec3f c = Vec3f::Zero();
+    float reach = 0.0f;
+    std::vector<float> x, y, z;
+    std::vector<std::uint32_t> index;
+    std::vector<float> d2;            // scratch: squared distances to the current gather's origin
+    std::vector<std::uint32_t> keep;  // scratch: positions of the accepted points
+    std::size_t n = 0;
+};
+thread_local Superset tls_superset;
+
+// How far (in units of h) the superset reaches beyond the gather that filled it.
+constexpr float kSupersetMargin = 1.0f;
+
+// Fills `s` with the points within `reach` of c, in ascending cell order (dense grid only).
+void FillSuperset(const UniformGrid& grid, std::uint64_t owner, const Vec3f& c, float reach, Superset& s) {
+    s.owner = 0;
+    s.n = 0;
+    const float r2 = reach * reach;
+    const Vec3f* pts = grid.sorted_points();
+    const std::uint32_t* idx = grid.sorted_indices();
+    grid.ForEachCandidateRun(c, reach, [&](std::uint32_t first, std::uint32_t last) {
+        const std::size_t need = s.n + (last - first);
+        if (need > s.index.size()) {
+            const std::size_t cap = std::max<std::size_t>(1024, 2 * need);
+            for (auto* v : {&s.x, &s.y, &s.z}) v->resize(cap);
+            s.index.resize(cap);
+        }
+        std::size_t n = s.n;
+        float *X = s.x.data(), *Y = s.y.data(), *Z = s.z.data();
+        std::uint32_t* I = s.index.data();
+        for (std::uint32_t j = first; j < last; ++j) {
+            const Vec3f p = pts[j];
+            const Vec3f e = p - c;
+            X[n] = p.x();
+            Y[n] = p.y();
+            Z[n] = p.z();
+            I[n] = idx[j];
+            n += e.squaredNorm() <= r2 ? 1 : 0;
+        }
+        s.n = n;
+    });
+    s.c = c;
+    s.reach = reach;
+    s.owner = owner;
+}
+
 // The neighbours within cutoff * h of o (a point in float, so that offsets are float
 // differences), relative to o, with their Gaussian weights and weighted moments about o: the
-// first step of both FitAt (eq. 8, 9) and Evaluate (eq. 1-4).
-WeightedMoments GatherAround(const UniformGrid& grid, const Vec3f& o, float radius, double h, NeighborBatch& nb) {
+// first step of both FitAt (eq. 8, 9) and Evaluate (eq. 1-4). From the thread's superset when
+// it covers the ball (dense grids), else from the grid.
+WeightedMoments GatherAround(const UniformGrid& grid, std::uint64_t owner, const Vec3f& o, float radius, double h,
+                             NeighborBatch& nb) {
     nb.clear();
-    grid.ForEachCandidateRun(o, radius, [&](std::uint32_t first, std::uint32_t last) {
-        nb.PushWithin(grid.sorted_points() + first, grid.sorted_indices() + first, last - first, o, radius * radius);
-    });
+    if (grid.dense()) {
+        Superset& s = tls_superset;
+        // Covered when |o - c| + radius <= reach, less a hair for the rounding of these floats.
+        const auto covers = [&] { return s.owner == owner && (o - s.c).norm() + radius <= s.reach * (1.0f - 1e-4f); };
+        if (!covers()) FillSuperset(grid, owner, o, radius + kSupersetMargin * static_cast<float>(h), s);
+        // Three passes: the squared distances (vectorised), the accepted positions (a
+        // branch-free compaction), then the accepted offsets. d2 is Eigen's squaredNorm of the
+        // float offset, x^2 + (y^2 + z^2), as PushWithin computes it, so the test and the
+        // stored values are PushWithin's to the bit.
+        const std::size_t m = s.n;
+        if (s.d2.size() < m) s.d2.resize(s.index.size()), s.keep.resize(s.index.size());
+        const float r2 = radius * radius;
+        const float ox = o.x(), oy = o.y(), oz = o.z();
+        const float *SX = s.x.data(), *SY = s.y.data(), *SZ = s.z.data();
+        float* SD = s.d2.data();
+#pragma omp simd
+        for (std::size_t j = 0; j < m; ++j) {
+            const float ex = SX[j] - ox, ey = SY[j] - oy, ez = SZ[j] - oz;
+            SD[j] = ex * ex + (ey * ey + ez * ez);
+        }
+        std::uint32_t* K = s.keep.data();
+        std::size_t n = 0;
+        for (std::size_t j = 0; j < m; ++j) {
+            K[n] = static_cast<std::uint32_t>(j);
+            n += SD[j] <= r2 ? 1 : 0;
+        }
+        nb.Reserve(n);
+        const std::uint32_t* SI = s.index.data();
+        float *X = nb.x.data(), *Y = nb.y.data(), *Z = nb.z.data(), *D = nb.d2.data();
+        std::uint32_t* I = nb.index.data();
+        for (std::size_t k = 0; k < n; ++k) {
+            const std::uint32_t j = K[k];
+            X[k] = SX[j] - ox;
+            Y[k] = SY[j] - oy;
+            Z[k] = SZ[j] - oz;
+            D[k] = SD[j];
+            I[k] = SI[j];
+        }
+        nb.Resize(n);
+    } else {
+        grid.ForEachCandidateRun(o, radius, [&](std::uint32_t first, std::uint32_t last) {
+            nb.PushWithin(grid.sorted_points() + first, grid.sorted_indices() + first, last - first, o,
+                          radius * radius);
+        });
+    }
     if (nb.size() < 3) return {};
     nb.Weights(h);
     return WeightedMoments::Of(nb);
@@ -134,7 +239,7 @@ bool AaSurface::FitAt(const Vec3d& r, Fit* fit, float cutoff, bool attributes) c
     // Step 1, support plane: B = sum theta_j (p_j - r)(p_j - r)^T (eq. 8, 9), about r rounded to
     // float (within 1e-7 relative of r; the frame's origin is that point).
     const Vec3f rf = r.cast<float>();
-    const WeightedMoments wm = GatherAround(*impl_->grid, rf, cutoff * o.h, o.h, nb);
+    const WeightedMoments wm = GatherAround(*impl_->grid, impl_->id, rf, cutoff * o.h, o.h, nb);
     if (!(wm.w > 1e-12)) return false;
     const std::size_t m = nb.size();
     Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es;
@@ -168,7 +273,7 @@ AaEvaluation AaSurface::Evaluate(const Vec3d& x) const {
     NeighborBatch& nb = tls_batch;
     // eq. 1-4: the weighted mean a(x) and the covariances in directions through x.
     const Vec3f xf = x.cast<float>();
-    const WeightedMoments wm = GatherAround(*impl_->grid, xf, o.cutoff * o.h, o.h, nb);
+    const WeightedMoments wm = GatherAround(*impl_->grid, impl_->id, xf, o.cutoff * o.h, o.h, nb);
     if (!(wm.w > 1e-12)) return ev;
     Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es;
     es.computeDirect(wm.Second());

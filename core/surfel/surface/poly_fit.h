@@ -49,6 +49,13 @@ struct NeighborBatch {
 
     std::size_t size() const { return n_; }
     void clear() { n_ = 0; }
+    /// Makes room for `count` entries (the arrays' size; existing entries are kept), for callers
+    /// that write x, y, z, d2, index directly and then set the count with Resize().
+    void Reserve(std::size_t count) {
+        while (count > index.size()) Grow();
+    }
+    /// Sets the number of entries (at most the room Reserve made).
+    void Resize(std::size_t count) { n_ = count; }
     /// Appends point i at offset d from the origin.
     void Push(std::uint32_t i, const Vec3f& d) {
         if (n_ == index.size()) Grow();

@@ -115,6 +115,42 @@ TEST(AaSurface, TheRayThatFillsTheCenterCacheGetsTheHitOfTheRaysThatReadIt) {
     EXPECT_EQ(counters.cache_hits, c.size());
 }
 
+TEST(AaSurface, AnEvaluationDoesNotDependOnTheCallsBeforeIt) {
+    // Gathers filter a per-thread superset of the neighbourhood of an earlier gather when it
+    // covers the new ball. Whatever came before (a nearby point, a far one, another surface),
+    // the same x must give the same bits: a render's image must not depend on the tile order.
+    ShapeOptions o;
+    o.points = 5000;
+    o.normals = true;
+    const PointCloud c = SampleShape(Shape::kTorus, o);
+    o.points = 3000;
+    const PointCloud other_cloud = SampleShape(Shape::kSphere, o);
+    const AaSurface s(c), other(other_cloud);
+    std::vector<Vec3d> xs;
+    for (std::uint32_t i = 0; i < c.size(); i += 25) {
+        const Vec3d p = c.positions[i].cast<double>(), n = c.normals[i].cast<double>();
+        for (double k : {-0.6, -0.1, 0.0, 0.05, 0.4}) xs.push_back(p + k * s.h() * n + 0.2 * k * s.h() * n.unitOrthogonal());
+    }
+    std::vector<AaEvaluation> forward;
+    for (const Vec3d& x : xs) forward.push_back(s.Evaluate(x));  // each next to the one before
+    auto same = [](const AaEvaluation& a, const AaEvaluation& b) {
+        return a.well_defined == b.well_defined && std::memcmp(&a.f, &b.f, sizeof(double)) == 0 &&
+               std::memcmp(a.a.data(), b.a.data(), 3 * sizeof(double)) == 0 &&
+               std::memcmp(a.n.data(), b.n.data(), 3 * sizeof(double)) == 0;
+    };
+    int defined = 0, differ = 0;
+    for (std::size_t k = xs.size(); k-- > 0;) {
+        // Backwards, and each after a far jump on this surface and a call on another surface.
+        s.Evaluate(xs[(k * 7919) % xs.size()]);
+        other.Evaluate(Vec3d(0.3, 0.2, 0.9));
+        const AaEvaluation e = s.Evaluate(xs[k]);
+        defined += e.well_defined;
+        differ += same(e, forward[k]) ? 0 : 1;
+    }
+    EXPECT_GT(defined, int(xs.size()) / 2);
+    EXPECT_EQ(differ, 0);
+}
+
 TEST(AaSurface, RayMissesFarFromThePoints) {
     ShapeOptions o;
     o.points = 2000;
