@@ -162,6 +162,40 @@ TEST(Simplify, LargeClustersAreRepresentedOnTheSurfaceNotInsideIt) {
     }
 }
 
+TEST(Simplify, PositionsOnlyGivesTheSamePositionsAndNoAttributes) {
+    const PointCloud c = Sphere(20000);
+    for (const SimplifyMethod m : kAllMethods) {
+        SimplifyOptions o;
+        o.method = m;
+        o.target = 500;
+        o.measure_error = false;
+        const SimplifyResult full = Simplify(c, o);
+        o.positions_only = true;
+        const SimplifyResult bare = Simplify(c, o);
+        EXPECT_EQ(bare.cloud.positions, full.cloud.positions) << SimplifyMethodName(m);
+        EXPECT_TRUE(bare.cloud.normals.empty() && bare.cloud.radii.empty()) << SimplifyMethodName(m);
+    }
+}
+
+TEST(Simplify, HierarchicalNormalsComeFromTheClustersAndPointOutward) {
+    // The uniform hierarchy splits 100k points in parallel up to a size, then by the queue: at
+    // 1 % and 10 % every normal of the unit sphere is radial (the clusters' own covariance
+    // normals) and oriented outward.
+    const PointCloud c = Sphere(100000);
+    for (const std::size_t target : {1000u, 10000u}) {
+        const SimplifyResult r = RunSimplify(c, SimplifyMethod::kHierarchical, target);
+        ASSERT_EQ(r.cloud.size(), target);
+        double worst = 1.0;
+        std::size_t off = 0;
+        for (std::size_t i = 0; i < r.cloud.size(); ++i) {
+            const double d = r.cloud.normals[i].dot(r.cloud.positions[i].normalized());
+            worst = std::min(worst, d);
+            off += d < std::cos(10.0 * M_PI / 180.0);
+        }
+        EXPECT_GT(worst, std::cos(10.0 * M_PI / 180.0)) << target << " off " << off;
+    }
+}
+
 TEST(Simplify, HierarchicalErrorBoundKeepsClustersFlat) {
     const PointCloud c = Sphere(20000);
     std::size_t last = 0;
