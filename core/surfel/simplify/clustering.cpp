@@ -145,6 +145,22 @@ struct Sums {
     }
 };
 
+// Sums of items[begin, end) about o, ten scalar accumulators.
+Sums SumsAbout(std::span<const Item> items, std::uint32_t begin, std::uint32_t end, const Vec3f& o) {
+    double sx = 0, sy = 0, sz = 0, sxx = 0, sxy = 0, sxz = 0, syy = 0, syz = 0, szz = 0;
+    for (std::uint32_t i = begin; i < end; ++i) {
+        const Vec3f& p = items[i].p;
+        const double x = double(p.x() - o.x()), y = double(p.y() - o.y()), z = double(p.z() - o.z());
+        sx += x, sy += y, sz += z;
+        sxx += x * x, sxy += x * y, sxz += x * z, syy += y * y, syz += y * z, szz += z * z;
+    }
+    Sums s;
+    s.n = double(end - begin);
+    s.d[0] = sx, s.d[1] = sy, s.d[2] = sz;
+    s.dd[0] = sxx, s.dd[1] = sxy, s.dd[2] = sxz, s.dd[3] = syy, s.dd[4] = syz, s.dd[5] = szz;
+    return s;
+}
+
 Node MakeNode(std::span<const Item> items, std::uint32_t begin, std::uint32_t end, bool adaptive) {
     Node node;
     node.begin = begin;
@@ -158,9 +174,9 @@ Node MakeNode(std::span<const Item> items, std::uint32_t begin, std::uint32_t en
     return node;
 }
 
-// Splits `node` at its centroid across v2 (notes 2.1.2) in one pass over its items: the side
-// test, a branch-free partition through `scratch` (the same index range: concurrent splits of
-// disjoint nodes never share it) and both children's sums about the node's centroid.
+// Splits `node` at its centroid across v2 (notes 2.1.2): the side test and a branch-free
+// partition through `scratch` (the same index range: concurrent splits of disjoint nodes never
+// share it), then each child's sums over its own contiguous items.
 bool SplitNode(std::span<Item> items, std::span<Item> scratch, const Node& node, bool adaptive, Node& left,
                Node& right) {
     if (node.priority < 0) return false;
@@ -168,31 +184,15 @@ bool SplitNode(std::span<Item> items, std::span<Item> scratch, const Node& node,
     const Vec3f axis = node.spread.v2.cast<float>();
     Item* lo = scratch.data() + node.begin;
     Item* hi = scratch.data() + node.end;
-    // Both sides summed in the same pass, about the node's centroid: each node's statistics are
-    // exact sums over its own items (deriving one side as the node's minus the other's doubles
-    // the centroid's error at every level).
-    double s0[10] = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0}, s1[10] = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
+    // The side test as p . axis < c . axis (one dot product a point).
+    const float ax = axis.x(), ay = axis.y(), az = axis.z(), cut = c.dot(axis);
     for (std::uint32_t i = node.begin; i < node.end; ++i) {
         const Item it = items[i];
-        const Vec3f d = it.p - c;
-        const bool is_neg = d.dot(axis) < 0.0f;
+        const bool is_neg = it.p.x() * ax + it.p.y() * ay + it.p.z() * az < cut;
         Item* slot = is_neg ? lo : hi - 1;
         *slot = it;
         lo += is_neg;
         hi -= !is_neg;
-        const double x = d.x(), y = d.y(), z = d.z();
-        const double v[10] = {1.0, x, y, z, x * x, x * y, x * z, y * y, y * z, z * z};
-        const double w = is_neg ? 1.0 : 0.0;
-        for (int j = 0; j < 10; ++j) {
-            s0[j] += w * v[j];
-            s1[j] += v[j] - w * v[j];
-        }
-    }
-    Sums neg, pos;
-    for (auto [sums, src] : {std::pair{&neg, s0}, std::pair{&pos, s1}}) {
-        sums->n = src[0];
-        for (int j = 0; j < 3; ++j) sums->d[j] = src[1 + j];
-        for (int j = 0; j < 6; ++j) sums->dd[j] = src[4 + j];
     }
     auto k = static_cast<std::uint32_t>(lo - (scratch.data() + node.begin));
     const std::uint32_t size = node.end - node.begin;
@@ -210,6 +210,10 @@ bool SplitNode(std::span<Item> items, std::span<Item> scratch, const Node& node,
         return true;
     }
     std::copy(scratch.begin() + node.begin, scratch.begin() + node.end, items.begin() + node.begin);
+    // Each child's sums over its own items about the node's centroid: exact statistics at every
+    // depth (deriving one side as the node's minus the other's doubles the centroid's error at
+    // every level).
+    const Sums neg = SumsAbout(items, node.begin, node.begin + k, c), pos = SumsAbout(items, node.begin + k, node.end, c);
     left.begin = node.begin, left.end = node.begin + k;
     right.begin = node.begin + k, right.end = node.end;
     neg.To(c, left);

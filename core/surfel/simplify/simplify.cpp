@@ -9,6 +9,7 @@
 #include "surfel/base/validate.h"
 #include "surfel/simplify/simplify_internal.h"
 #include "surfel/spatial/kd_tree.h"
+#include "surfel/spatial/neighbor_radii.h"
 #include "surfel/surface/local_analysis.h"
 #include "surfel/surface/poly_fit.h"
 
@@ -185,8 +186,9 @@ PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> nor
     }
     out.radii.resize(m);
     if (out_tree) {
-        const KnnTable nn = out_tree->KnnAll(1);
-        for (std::size_t c = 0; c < m; ++c) out.radii[c] = std::max(cover[c], std::sqrt(nn.Dist2(c)[0]));
+        // The nearest other representative (a grid, exact: the same as the tree's KnnAll(1)).
+        const std::vector<float> nn = KthNeighborDistances(out.positions, 1, out_tree.get());
+        for (std::size_t c = 0; c < m; ++c) out.radii[c] = std::max(cover[c], nn[c]);
     } else {
         out.radii = cover;
     }
