@@ -196,6 +196,27 @@ TEST(Simplify, HierarchicalNormalsComeFromTheClustersAndPointOutward) {
     }
 }
 
+TEST(Simplify, HierarchicalParallelSplitsGiveTheSameClustersWhateverTheThreadCount) {
+    // 60k points: subtrees above 4096 points are split in parallel (SameOutputWhateverTheThreadCount's
+    // 8k sphere never gets there).
+    const PointCloud c = Sphere(60000);
+    for (const std::size_t target : {600u, 6000u}) {
+        SimplifyResult one, many;
+        {
+            tbb::global_control limit(tbb::global_control::max_allowed_parallelism, 1);
+            one = RunSimplify(c, SimplifyMethod::kHierarchical, target);
+        }
+        {
+            tbb::global_control limit(tbb::global_control::max_allowed_parallelism, 4);
+            many = RunSimplify(c, SimplifyMethod::kHierarchical, target);
+        }
+        ASSERT_EQ(one.cloud.size(), target);
+        EXPECT_EQ(one.cloud.positions, many.cloud.positions) << target;
+        EXPECT_EQ(one.cloud.normals, many.cloud.normals) << target;
+        EXPECT_EQ(one.cloud.radii, many.cloud.radii) << target;
+    }
+}
+
 TEST(Simplify, HierarchicalErrorBoundKeepsClustersFlat) {
     const PointCloud c = Sphere(20000);
     std::size_t last = 0;
