@@ -225,7 +225,9 @@ SimplifyResult Simplify(const PointCloud& input, const SimplifyOptions& options,
         NormalOptions no;
         no.k = std::min<int>(16, static_cast<int>(n) - 1);
         no.orient_k = std::min<int>(10, static_cast<int>(n) - 1);
-        no.orient = normals.empty();
+        // The particles need only tangent planes (unoriented normals, 2.3.3): their own normals are
+        // oriented after the run, over the m particles instead of the n input points.
+        no.orient = normals.empty() && options.method != SimplifyMethod::kParticle;
         NormalResult nr = EstimateNormals(tree, no);
         if (normals.empty()) {
             normals = std::move(nr.normals);
@@ -272,6 +274,12 @@ SimplifyResult Simplify(const PointCloud& input, const SimplifyOptions& options,
     result.cloud = BuildFromClusters(input, normals, clusters, positions, options.positions_only);
     if (!particle_normals.empty() && !options.positions_only) {
         result.cloud.normals = particle_normals;  // the MLS normals at the projected positions
+        if (report.normals_estimated && result.cloud.size() >= 3) {  // input normals unoriented: orient these
+            const KdTree ptree(result.cloud.positions);
+            NormalOptions no;
+            no.orient_k = std::min<int>(10, static_cast<int>(result.cloud.size()) - 1);
+            OrientNormals(ptree, result.cloud.normals, no);
+        }
         // Radii were measured in the planes of the member-averaged normals; close enough, and
         // the nearest-neighbour floor still holds.
     }
