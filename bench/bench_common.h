@@ -5,10 +5,12 @@
 
 #include <benchmark/benchmark.h>
 
+#include <algorithm>
 #include <cmath>
 #include <filesystem>
 #include <functional>
 #include <map>
+#include <random>
 #include <string>
 #include <vector>
 
@@ -131,6 +133,49 @@ inline const MeshDistance& MeshFor(const std::string& dataset) {
     return *slot;
 }
 
+/// Points spread over the surface a dataset samples, for coverage: kCoverSamples points on the
+/// ground-truth mesh, uniform by area (a fixed seed), or the dataset's own points where it has no
+/// mesh (person_scan).
+inline const std::vector<Vec3f>& SurfaceSamples(const std::string& dataset) {
+    static std::map<std::string, std::vector<Vec3f>> cache;
+    auto& s = cache[dataset];
+    if (!s.empty()) return s;
+    if (MeshOf(dataset).empty()) return s = Dataset(dataset).positions;
+    constexpr std::size_t kCoverSamples = 200000;
+    const PointCloud& mesh = Dataset(MeshOf(dataset));
+    std::vector<double> cum;
+    double total = 0;
+    for (const auto& t : mesh.triangles) {
+        const Vec3f a = mesh.positions[t[0]], b = mesh.positions[t[1]], c = mesh.positions[t[2]];
+        total += 0.5 * double((b - a).cross(c - a).norm());
+        cum.push_back(total);
+    }
+    std::mt19937_64 rng(19);
+    std::uniform_real_distribution<double> u(0.0, 1.0);
+    for (std::size_t i = 0; i < kCoverSamples; ++i) {
+        const std::size_t t = std::size_t(std::lower_bound(cum.begin(), cum.end(), u(rng) * total) - cum.begin());
+        const auto& tri = mesh.triangles[std::min(t, mesh.triangles.size() - 1)];
+        double r1 = std::sqrt(u(rng)), r2 = u(rng);
+        const Vec3f a = mesh.positions[tri[0]], b = mesh.positions[tri[1]], c = mesh.positions[tri[2]];
+        s.push_back(float(1 - r1) * a + float(r1 * (1 - r2)) * b + float(r1 * r2) * c);
+    }
+    return s;
+}
+
+/// Coverage (issue 19.4): the 95th percentile over SurfaceSamples of the distance to the nearest
+/// output point, relative to the input's bounding-box diagonal. A result that leaves part of the
+/// surface bare, or bunches its points, has a high p95 whatever its mean error.
+inline double CoverageP95(const std::string& dataset, std::span<const Vec3f> out) {
+    if (out.empty()) return 0.0;
+    const KdTree tree(out);
+    const auto& samples = SurfaceSamples(dataset);
+    std::vector<float> d(samples.size());
+    for (std::size_t i = 0; i < samples.size(); ++i) d[i] = std::sqrt(tree.Nearest(samples[i]).dist2);
+    const auto k = d.begin() + std::ptrdiff_t(d.size() * 95 / 100);
+    std::nth_element(d.begin(), k, d.end());
+    return double(*k) / double(Dataset(dataset).Bounds().Diagonal());
+}
+
 /// Simplification targets of issue 5: 1 % and 10 % of the input.
 inline std::size_t Target(const std::string& dataset, int percent) { return Dataset(dataset).size() * percent / 100; }
 
@@ -146,10 +191,12 @@ inline void SimplifyCounters(benchmark::State& state, const std::string& dataset
     eo.degree = 1;  // the notes' own measure: a linear basis for the projection onto S'
     state.counters["err_avg_lin_rel"] = MeasureSurfaceError(Dataset(dataset), out, eo).avg_relative();
     state.counters["err_max_rel"] = e.max_relative();
+    state.counters["cover_p95"] = CoverageP95(dataset, out.positions);
     if (!MeshOf(dataset).empty()) {
         const auto s = MeshFor(dataset).Measure(out.positions);
         state.counters["mesh_mean"] = s.mean;
         state.counters["mesh_max"] = s.max;
+        if (out.has_normals()) state.counters["within30"] = MeshFor(dataset).NormalAgreement(out.positions, out.normals);
     }
     state.counters["peak_rss_mb"] = PeakResidentMiB();
 }
@@ -157,6 +204,11 @@ inline void SimplifyCounters(benchmark::State& state, const std::string& dataset
 /// Datasets of issue 3 (core) and issue 5 (simplification).
 inline const std::vector<std::string>& CoreDatasets() {
     static const std::vector<std::string> d = {"bunny", "bunny_scans_merged"};
+    return d;
+}
+/// MLS (issue 19.5): the bunny, one raw range scan of it, the merged scans (person_scan has no mesh).
+inline const std::vector<std::string>& MlsDatasets() {
+    static const std::vector<std::string> d = {"bunny", "bunny_scan", "bunny_scans_merged"};
     return d;
 }
 inline const std::vector<std::string>& SimplifyDatasets() {
@@ -170,7 +222,9 @@ inline void Register(const std::string& task, const std::vector<std::string>& da
     for (const auto& d : datasets) {
         if (!HaveDataset(d)) continue;
         auto* b = benchmark::RegisterBenchmark((task + "/" + d).c_str(), [fn, d](benchmark::State& s) { fn(s, d); });
-        b->Unit(benchmark::kMillisecond)->UseRealTime();
+        // cpu_time: every thread of the process (ours use two, CGAL's simplification one), the
+        // figure to read when the shared machine is loaded and wall-clock times swing.
+        b->Unit(benchmark::kMillisecond)->UseRealTime()->MeasureProcessCPUTime();
         if (iterations) b->Iterations(iterations);
     }
 }

@@ -31,19 +31,29 @@ void Normals(benchmark::State& state, const std::string& d) {
     state.counters["within30"] = MeshFor(d).NormalAgreement(c.positions, r.normals);
 }
 
-void Mls(benchmark::State& state, const std::string& d) {
+// MLS support (issue 19.5): theta(d) = exp(-d^2 / h^2) over the neighbours within cutoff x h.
+// mls_project: the defaults (h = 2 x median spacing, cutoff 3); mls_project_c<C>: cutoff C / 10
+// (fewer neighbours, the weights beyond are below exp(-C^2/100)). SURFEL_BENCH_MLS_H (a multiple
+// of the default h) and SURFEL_BENCH_MLS_CUTOFF override the first row for sweeps.
+void Mls(benchmark::State& state, const std::string& d, float cutoff) {
     const PointCloud& c = Dataset(d);
     MlsSurface::Batch b;
     float h = 0;
+    float h_scale = 1.0f;
+    if (const char* e = std::getenv("SURFEL_BENCH_MLS_H")) h_scale = float(std::atof(e));
+    if (const char* e = std::getenv("SURFEL_BENCH_MLS_CUTOFF"); e && cutoff == 3.0f) cutoff = float(std::atof(e));
     for (auto _ : state) {
         const KdTree tree(c.positions);
         MlsOptions o;
         o.degree = 2;
+        o.cutoff = cutoff;
+        if (h_scale != 1.0f) o.h = h_scale * 2.0f * MedianSpacing(tree);
         const MlsSurface mls(c, tree, o);
         h = mls.h();
         b = mls.ProjectAll(c.positions);
     }
     state.counters["h"] = h;
+    state.counters["radius"] = cutoff * h;
     state.counters["failed"] = double(b.failed);
     // Like PCL's output, the projected points only: a point with too few neighbours within the
     // cutoff (an isolated outlier) is not projected and stays where it was.
@@ -55,11 +65,14 @@ void Mls(benchmark::State& state, const std::string& d) {
     const auto before = MeshFor(d).Measure(c.positions);
     state.counters["mesh_mean"] = s.mean;
     state.counters["mesh_rms"] = s.rms;
+    state.counters["mesh_mean_rel"] = s.mean / c.Bounds().Diagonal();
     state.counters["input_mesh_mean"] = before.mean;
 }
 
-void SimplifyWith(benchmark::State& state, const std::string& d, SimplifyMethod m, int percent, bool adaptive) {
+void SimplifyWith(benchmark::State& state, const std::string& d, SimplifyMethod m, int percent, bool adaptive,
+                  bool positions_only = false) {
     SimplifyOptions o;
+    o.positions_only = positions_only;
     o.method = m;
     o.target = Target(d, percent);
     o.adaptive = adaptive;
@@ -113,7 +126,10 @@ void RenderBench(benchmark::State& state, const std::string& d, const Camera& ca
 [[maybe_unused]] const bool kRegistered = [] {
     Register("knn16", CoreDatasets(), Knn);
     Register("normals_oriented", CoreDatasets(), Normals, 1);
-    Register("mls_project", CoreDatasets(), Mls, 1);
+    Register("mls_project", MlsDatasets(), [](benchmark::State& s, const std::string& d) { Mls(s, d, 3.0f); }, 1);
+    for (float cut : {1.5f, 2.0f})
+        Register("mls_project_c" + std::to_string(int(cut * 10)), MlsDatasets(),
+                 [cut](benchmark::State& s, const std::string& d) { Mls(s, d, cut); }, 1);
     for (auto [m, name] : {std::pair{SimplifyMethod::kHierarchical, "hierarchical"},
                            std::pair{SimplifyMethod::kIncremental, "incremental"},
                            std::pair{SimplifyMethod::kIterative, "iterative"},
@@ -121,6 +137,12 @@ void RenderBench(benchmark::State& state, const std::string& d, const Camera& ca
         for (int pct : {1, 10})
             Register(std::string("simplify_") + name + "_" + std::to_string(pct) + "pct", SimplifyDatasets(),
                      [m = m, pct](benchmark::State& s, const std::string& d) { SimplifyWith(s, d, m, pct, false); }, 1);
+    // Positions alone (no normals, radii): the output CGAL's hierarchy_simplify_point_set gives.
+    for (int pct : {1, 10})
+        Register("simplify_hierarchical-positions_" + std::to_string(pct) + "pct", SimplifyDatasets(),
+                 [pct](benchmark::State& s, const std::string& d) {
+                     SimplifyWith(s, d, SimplifyMethod::kHierarchical, pct, false, true);
+                 }, 1);
     Register("render_paper_320x250", {"bunny"},
              [](benchmark::State& s, const std::string& d) { RenderBench(s, d, PaperCamera()); });
     Register("render_loose_200x400", {"bunny"}, [](benchmark::State& s, const std::string& d) {

@@ -50,6 +50,11 @@ def real_ms(b):
     return b["real_time"] if b["time_unit"] == "ms" else b["real_time"] / 1e6
 
 
+def cpu_ms(b):
+    """CPU time of the whole process (bench_common.h registers with MeasureProcessCPUTime)."""
+    return b["cpu_time"] if b["time_unit"] == "ms" else b["cpu_time"] / 1e6
+
+
 def run_all(bin_dir, regex):
     """Every benchmark once (its counters and a first time); then the short ones (under
     MEDIAN_BELOW_MS) again ROUNDS times, interleaved: each round runs Surfel's benchmark and every
@@ -85,19 +90,22 @@ def run_all(bin_dir, regex):
             for impl, exe in group:
                 records = run_benchmark(exe, name)
                 if records:
-                    times[(impl, name)].append(real_ms(records[0]))
+                    times[(impl, name)].append((real_ms(records[0]), cpu_ms(records[0])))
     rows = []
     for impl, name in order:
         _, records = first[(impl, name)]
         for b in records:
             task, dataset = b["name"].split("/")[:2]
-            samples = sorted(times.get((impl, name), []))
-            ms = samples[len(samples) // 2] if samples else real_ms(b)
+            samples = times.get((impl, name), [])
+            walls = sorted(t for t, _ in samples)
+            cpus = sorted(c for _, c in samples)
+            ms = walls[len(walls) // 2] if walls else real_ms(b)
+            cpu = cpus[len(cpus) // 2] if cpus else cpu_ms(b)
             extra = {k: v for k, v in b.items() if k not in (
                 "name", "run_name", "run_type", "repetitions", "repetition_index", "threads", "iterations",
                 "real_time", "cpu_time", "time_unit", "family_index", "per_family_instance_index",
                 "aggregate_name", "aggregate_unit", "label")}
-            rows.append({"impl": impl, "task": task, "dataset": dataset, "ms": ms, **extra})
+            rows.append({"impl": impl, "task": task, "dataset": dataset, "ms": ms, "cpu_ms": cpu, **extra})
     return rows
 
 
@@ -125,18 +133,22 @@ def core_section(rows):
             ("knn16", "16 nearest neighbours of every point (tree build included)", []),
             ("normals_oriented", "normals (k = 16) + consistent orientation (MST, k = 10)",
              [("within30", "within 30° of the mesh normal")]),
-            ("mls_project", "MLS projection of every point (degree 2, same h, neighbours within 3h)",
-             [("points", "points projected"), ("mesh_mean", "mean distance to bunny_mesh"),
-              ("mesh_rms", "RMS distance")])]:
+            ("mls_project", "MLS projection of every point (degree 2; each row's support: `radius`; "
+             "mls_project = Surfel's defaults, h = 2 x median spacing, 3h, given to PCL too; _c15/_c20 = "
+             "Surfel cut at 1.5h/2h; _pcl_r10/15/20 = PCL's own weighting exp(-d²/r²) at r = 1, 1.5, 2 h)",
+             [("radius", "support radius"), ("points", "points projected"),
+              ("mesh_mean", "mean distance to bunny_mesh"), ("mesh_rms", "RMS distance")])]:
         lines += [f"### {title}", ""]
-        for dataset in sorted({r["dataset"] for r in rows if r["task"] == task}):
-            sel = [r for r in rows if r["task"] == task and r["dataset"] == dataset]
-            ours = next((r for r in sel if r["impl"] == "surfel"), None)
+        match = (lambda t: t.startswith("mls_project")) if task == "mls_project" else (lambda t: t == task)
+        for dataset in sorted({r["dataset"] for r in rows if match(r["task"])}):
+            sel = [r for r in rows if match(r["task"]) and r["dataset"] == dataset]
+            ours = next((r for r in sel if r["impl"] == "surfel" and r["task"] == task), None)
             body = []
             for r in sorted(sel, key=lambda r: r["ms"]):
                 ratio = r["ms"] / ours["ms"] if ours else float("nan")
-                body.append([r["impl"], r["ms"], f"{ratio:.2f}×"] + [r.get(k, "–") for k, _ in quality])
-            lines += [f"`{dataset}`", "", table(["implementation", "time (ms)", "time / surfel's"] +
+                name = r["impl"] if r["task"] == task else f"{r['impl']} {r['task'][len(task):]}"
+                body.append([name, r["ms"], r.get("cpu_ms", "–"), f"{ratio:.2f}×"] + [r.get(k, "–") for k, _ in quality])
+            lines += [f"`{dataset}`", "", table(["implementation", "time (ms)", "CPU (ms)", "time / surfel's"] +
                                                  [q for _, q in quality], body), ""]
     return lines
 
@@ -165,6 +177,8 @@ def simplify_section(rows):
              "`per sample` is the plain mean over the input's samples (it leans to densely scanned regions); "
              "`linear` is Δavg by area with the notes' linear basis for the projection onto the result's "
              "surface (Surfel's default is quadratic, see docs/surface-model.md); "
+             "`cover p95` is the 95th percentile of the distance from points spread uniformly over bunny_mesh.ply "
+             "(person_scan: from its input points) to the nearest output point, relative to the diagonal; "
              "`mesh` is the mean distance of the output points to bunny_mesh.ply (bunny only). "
              "`vs surfel` divides by Surfel's time for the same kind of method (hierarchical for "
              "CGAL's hierarchy, voxel for the grids, particle for WLOP).", ""]
@@ -179,13 +193,14 @@ def simplify_section(rows):
             name = method if r["impl"] == "surfel" else SIMPLIFY_PEER_NAMES.get((r["impl"], method), method)
             ref = ours.get({"wlop": "particle"}.get(method, method))
             ratio = f"{r['ms'] / ref['ms']:.2f}×" if ref and r["impl"] != "surfel" else "–"
-            body.append([f"{r['impl']} {name}", int(r.get("points", 0)), r["ms"], ratio,
-                         r.get("err_avg_rel", "–"), r.get("err_avg_ps_rel", "–"), r.get("err_avg_lin_rel", "–"),
+            body.append([f"{r['impl']} {name}", int(r.get("points", 0)), r["ms"], r.get("cpu_ms", "–"), ratio,
+                         r.get("err_avg_rel", "–"), r.get("cover_p95", "–"), r.get("err_avg_ps_rel", "–"), r.get("err_avg_lin_rel", "–"),
                          r.get("err_max_rel", "–"),
                          r.get("mesh_mean", "–"),
                          r.get("peak_rss_mb", "–")])
         lines += [f"### `{dataset}` to {pct.replace('pct', ' %')}", "",
-                  table(["implementation", "points", "time (ms)", "vs surfel", "err avg (rel)", "per sample", "linear",
+                  table(["implementation", "points", "time (ms)", "CPU (ms, all threads)", "vs surfel", "err avg (rel)",
+                         "cover p95 (rel)", "per sample", "linear",
                          "err max (rel)",
                          "mesh mean", "peak RSS (MB)"], body), ""]
     return lines

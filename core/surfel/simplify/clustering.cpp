@@ -7,6 +7,9 @@
 #include <numeric>
 #include <queue>
 
+#include <tbb/enumerable_thread_specific.h>
+#include <tbb/parallel_invoke.h>
+
 #include "surfel/base/error.h"
 #include "surfel/simplify/simplify_internal.h"
 #include "surfel/spatial/kd_tree.h"
@@ -85,13 +88,28 @@ std::vector<Item> MakeItems(std::span<const Vec3f> points) {
     return items;
 }
 
+// A node of the split tree: items[begin, end), their centroid c and scatter S = sum (p - c)(p - c)^T
+// (the covariance times n), both computed about the parent's centroid in the parent's split pass,
+// so each node's statistics are exact sums over its own items, well conditioned at every depth.
 struct Node {
     std::uint32_t begin = 0, end = 0;
-    Moments moments;
+    Eigen::Vector3d c = Eigen::Vector3d::Zero();
+    Eigen::Matrix3d S = Eigen::Matrix3d::Zero();
     Spread spread;
     double priority = 0.0;
     std::size_t size() const { return end - begin; }
 };
+
+Spread AnalyzeScatter(const Eigen::Matrix3d& S, std::size_t n) {
+    Spread s;
+    if (n < 2) return s;
+    Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> solver;
+    solver.computeDirect(S / static_cast<double>(n));
+    s.eigenvalues = solver.eigenvalues().cwiseMax(0.0);
+    s.v0 = solver.eigenvectors().col(0);
+    s.v2 = solver.eigenvectors().col(2);
+    return s;
+}
 
 double Priority(const Node& node, bool adaptive) {
     const double n = static_cast<double>(node.size());
@@ -101,63 +119,161 @@ double Priority(const Node& node, bool adaptive) {
     return adaptive ? n * (node.spread.Variation() + 1e-3) : n;
 }
 
-struct ByPriority {
-    bool operator()(const Node& a, const Node& b) const {
-        if (a.priority != b.priority) return a.priority < b.priority;
-        return a.begin > b.begin;  // deterministic tie-break
+void Finish(Node& node, bool adaptive) {
+    node.spread = AnalyzeScatter(node.S, node.size());
+    node.priority = Priority(node, adaptive);
+}
+
+// Sums of d = p - o and d d^T over items (double accumulators), for a node's exact statistics.
+struct Sums {
+    double n = 0;
+    double d[3] = {0, 0, 0};
+    double dd[6] = {0, 0, 0, 0, 0, 0};  // xx xy xz yy yz zz
+    void Add(const Vec3f& p, const Vec3f& o, double w = 1.0) {
+        const double x = double(p.x() - o.x()), y = double(p.y() - o.y()), z = double(p.z() - o.z());
+        const double wx = w * x, wy = w * y, wz = w * z;
+        n += w;
+        d[0] += wx, d[1] += wy, d[2] += wz;
+        dd[0] += wx * x, dd[1] += wx * y, dd[2] += wx * z, dd[3] += wy * y, dd[4] += wy * z, dd[5] += wz * z;
+    }
+    // Centroid and scatter about it, for sums taken about o.
+    void To(const Vec3f& o, Node& node) const {
+        const Eigen::Vector3d m(d[0] / n, d[1] / n, d[2] / n);
+        node.c = o.cast<double>() + m;
+        node.S << dd[0], dd[1], dd[2], dd[1], dd[3], dd[4], dd[2], dd[4], dd[5];
+        node.S -= n * m * m.transpose();
     }
 };
 
-Node MakeNode(std::span<const Item> items, std::uint32_t begin, std::uint32_t end, bool adaptive,
-              const Moments* known = nullptr) {
+// Sums of items[begin, end) about o, ten scalar accumulators.
+Sums SumsAbout(std::span<const Item> items, std::uint32_t begin, std::uint32_t end, const Vec3f& o) {
+    double sx = 0, sy = 0, sz = 0, sxx = 0, sxy = 0, sxz = 0, syy = 0, syz = 0, szz = 0;
+    for (std::uint32_t i = begin; i < end; ++i) {
+        const Vec3f& p = items[i].p;
+        const double x = double(p.x() - o.x()), y = double(p.y() - o.y()), z = double(p.z() - o.z());
+        sx += x, sy += y, sz += z;
+        sxx += x * x, sxy += x * y, sxz += x * z, syy += y * y, syz += y * z, szz += z * z;
+    }
+    Sums s;
+    s.n = double(end - begin);
+    s.d[0] = sx, s.d[1] = sy, s.d[2] = sz;
+    s.dd[0] = sxx, s.dd[1] = sxy, s.dd[2] = sxz, s.dd[3] = syy, s.dd[4] = syz, s.dd[5] = szz;
+    return s;
+}
+
+Node MakeNode(std::span<const Item> items, std::uint32_t begin, std::uint32_t end, bool adaptive) {
     Node node;
     node.begin = begin;
     node.end = end;
-    node.moments = known ? *known : MomentsOf(items.subspan(begin, end - begin));
-    node.spread = Analyze(node.moments);
-    node.priority = Priority(node, adaptive);
+    Vec3f o = Vec3f::Zero();  // about the first item: the items are relative to the cloud's mean
+    if (end > begin) o = items[begin].p;
+    Sums sums;
+    for (std::uint32_t i = begin; i < end; ++i) sums.Add(items[i].p, o);
+    if (end > begin) sums.To(o, node);
+    Finish(node, adaptive);
     return node;
 }
 
-// Splits `node` into two children (moments of the second by subtraction).
-bool SplitNode(std::vector<Item>& items, const Node& node, bool adaptive, Node& left, Node& right) {
-    std::span<Item> span(items.data() + node.begin, node.size());
-    const std::size_t k = SplitItems(span, node.moments, node.spread);
-    if (k == 0) return false;
-    const auto mid = static_cast<std::uint32_t>(node.begin + k);
-    Moments ml = MomentsOf(std::span<const Item>(items.data() + node.begin, k));
-    Moments mr = node.moments;
-    mr.n -= ml.n;
-    mr.sum -= ml.sum;
-    mr.outer -= ml.outer;
-    // Recompute the smaller side exactly and derive the other, keeping round-off bounded.
-    if (k > node.size() - k) {
-        mr = MomentsOf(std::span<const Item>(items.data() + mid, node.end - mid));
-        ml = node.moments;
-        ml.n -= mr.n;
-        ml.sum -= mr.sum;
-        ml.outer -= mr.outer;
+// Splits `node` at its centroid across v2 (notes 2.1.2): the side test and a branch-free
+// partition through `scratch` (the same index range: concurrent splits of disjoint nodes never
+// share it), then each child's sums over its own contiguous items.
+bool SplitNode(std::span<Item> items, std::span<Item> scratch, const Node& node, bool adaptive, Node& left,
+               Node& right) {
+    if (node.priority < 0) return false;
+    const Vec3f c = node.c.cast<float>();
+    const Vec3f axis = node.spread.v2.cast<float>();
+    Item* lo = scratch.data() + node.begin;
+    Item* hi = scratch.data() + node.end;
+    // The side test as p . axis < c . axis (one dot product a point).
+    const float ax = axis.x(), ay = axis.y(), az = axis.z(), cut = c.dot(axis);
+    for (std::uint32_t i = node.begin; i < node.end; ++i) {
+        const Item it = items[i];
+        const bool is_neg = it.p.x() * ax + it.p.y() * ay + it.p.z() * az < cut;
+        Item* slot = is_neg ? lo : hi - 1;
+        *slot = it;
+        lo += is_neg;
+        hi -= !is_neg;
     }
-    left = MakeNode(items, node.begin, mid, adaptive, &ml);
-    right = MakeNode(items, mid, node.end, adaptive, &mr);
+    auto k = static_cast<std::uint32_t>(lo - (scratch.data() + node.begin));
+    const std::uint32_t size = node.end - node.begin;
+    if (k == 0 || k == size) {
+        // All on one side in float arithmetic: split at the median projection instead.
+        std::span<Item> span = items.subspan(node.begin, size);
+        k = size / 2;
+        std::nth_element(span.begin(), span.begin() + k, span.end(), [&](const Item& a, const Item& b) {
+            const float pa = a.p.dot(axis), pb = b.p.dot(axis);
+            return pa < pb || (pa == pb && a.id < b.id);
+        });
+        if (span[k].p == span[0].p && span[k].p == span[size - 1].p) return false;
+        left = MakeNode(items, node.begin, node.begin + k, adaptive);
+        right = MakeNode(items, node.begin + k, node.end, adaptive);
+        return true;
+    }
+    std::copy(scratch.begin() + node.begin, scratch.begin() + node.end, items.begin() + node.begin);
+    // Each child's sums over its own items about the node's centroid: exact statistics at every
+    // depth (deriving one side as the node's minus the other's doubles the centroid's error at
+    // every level).
+    const Sums neg = SumsAbout(items, node.begin, node.begin + k, c), pos = SumsAbout(items, node.begin + k, node.end, c);
+    left.begin = node.begin, left.end = node.begin + k;
+    right.begin = node.begin + k, right.end = node.end;
+    neg.To(c, left);
+    pos.To(c, right);
+    Finish(left, adaptive);
+    Finish(right, adaptive);
     return true;
 }
 
 double MaxPlaneDistance(std::span<const Item> items, const Node& node) {
-    const Vec3f c = node.moments.Centroid().cast<float>();
+    const Vec3f c = node.c.cast<float>();
     const Vec3f n = node.spread.v0.cast<float>();
     double d = 0.0;
     for (std::uint32_t i = node.begin; i < node.end; ++i) d = std::max(d, std::abs(double((items[i].p - c).dot(n))));
     return d;
 }
 
-Clustering LabelsFromNodes(const std::vector<Item>& items, const std::vector<Node>& leaves, std::size_t n) {
+// Leaves in order of their first item; each cluster's normal is its covariance's v0 (notes 1.2:
+// the direction of least variation of the cluster's points), unoriented.
+Clustering LabelsFromNodes(const std::vector<Item>& items, std::vector<Node>& leaves, std::size_t n) {
+    std::sort(leaves.begin(), leaves.end(), [](const Node& a, const Node& b) { return a.begin < b.begin; });
     Clustering out;
     out.label.assign(n, 0);
     for (std::size_t c = 0; c < leaves.size(); ++c)
         for (std::uint32_t i = leaves[c].begin; i < leaves[c].end; ++i) out.label[items[i].id] = static_cast<std::uint32_t>(c);
     out.count = Compact(out.label);
+    // Compact numbers clusters by their smallest input index; normals follow that numbering.
+    out.normals.assign(out.count, Vec3f::Zero());
+    for (std::size_t c = 0; c < leaves.size(); ++c) {
+        const Node& leaf = leaves[c];
+        if (leaf.size() == 0) continue;
+        const Spread& sp = leaf.spread;
+        // A normal needs a patch: leave small (under 5 points), elongated (lambda_1 < lambda_2 / 10)
+        // or thick (lambda_0 > lambda_1 / 2) clusters to the caller's estimate (zero here).
+        const bool planar = leaf.size() >= 5 && sp.eigenvalues[1] > 0.1 * sp.eigenvalues[2] &&
+                            sp.eigenvalues[0] < 0.5 * sp.eigenvalues[1];
+        out.normals[out.label[items[leaf.begin].id]] = planar ? Vec3f(sp.v0.cast<float>()) : Vec3f::Zero();
+    }
     return out;
+}
+
+// Phase 1 of the uniform priority queue: every splittable node larger than `threshold` split,
+// subtrees in parallel. The uniform queue pops nodes in order of non-increasing size (children
+// are smaller than their parent), so while fewer than the target clusters exist it splits every
+// node above any size it has not reached yet: the queue run from these leaves gives the clusters
+// the queue run from the root gives, whatever the thread count.
+void SplitAbove(std::span<Item> items, std::span<Item> scratch, Node node, std::size_t threshold,
+                tbb::enumerable_thread_specific<std::vector<Node>>& leaves) {
+    while (node.size() > threshold) {
+        Node a, b;
+        if (!SplitNode(items, scratch, node, false, a, b)) break;
+        if (b.size() > threshold && b.size() >= 4096) {
+            tbb::parallel_invoke([&] { SplitAbove(items, scratch, a, threshold, leaves); },
+                                 [&] { SplitAbove(items, scratch, b, threshold, leaves); });
+            return;
+        }
+        SplitAbove(items, scratch, b, threshold, leaves);
+        node = a;
+    }
+    leaves.local().push_back(node);
 }
 
 }  // namespace
@@ -165,33 +281,60 @@ Clustering LabelsFromNodes(const std::vector<Item>& items, const std::vector<Nod
 Clustering HierarchicalClustering(std::span<const Vec3f> points, const SimplifyOptions& options,
                                   ProgressTracker& progress) {
     std::vector<Item> items = MakeItems(points);
+    std::vector<Item> scratch(items.size());
     const auto n = static_cast<std::uint32_t>(points.size());
     std::vector<Node> leaves;
     if (options.target > 0) {
         // Priority-queue variant (notes 2.1.2, [BW00, SG01]): always split the cluster of highest
-        // priority until there are exactly `target` clusters.
-        std::priority_queue<Node, std::vector<Node>, ByPriority> queue;
-        queue.push(MakeNode(items, 0, n, options.adaptive));
-        std::size_t done_since_check = 0;
-        while (!queue.empty() && leaves.size() + queue.size() < options.target) {
-            Node node = queue.top();
-            queue.pop();
+        // priority until there are exactly `target` clusters. The queue holds indices into `nodes`.
+        std::vector<Node> nodes;
+        const Node root = MakeNode(items, 0, n, options.adaptive);
+        if (!options.adaptive) {
+            // Uniform: phase 1 in parallel up to a size the queue surely passes (leaves of at
+            // most 2.5 n / target points, which makes at most about target / 1.7 clusters).
+            const std::size_t threshold = std::max<std::size_t>(16, 5 * std::size_t(n) / (2 * options.target));
+            tbb::enumerable_thread_specific<std::vector<Node>> local;
+            SplitAbove(items, scratch, root, threshold, local);
+            for (auto& l : local) nodes.insert(nodes.end(), l.begin(), l.end());
+            if (nodes.size() > options.target) {  // an unbalanced cloud overshot: start over
+                items = MakeItems(points);
+                nodes.assign(1, MakeNode(items, 0, n, false));
+            }
+            progress.Advance(0.5);
+        } else {
+            nodes.push_back(root);
+        }
+        using Entry = std::pair<double, std::uint32_t>;  // (priority, node)
+        const auto by_priority = [&](const Entry& a, const Entry& b) {
+            if (a.first != b.first) return a.first < b.first;
+            return nodes[a.second].begin > nodes[b.second].begin;  // deterministic tie-break
+        };
+        std::vector<Entry> heap;
+        for (std::uint32_t i = 0; i < nodes.size(); ++i) heap.push_back({nodes[i].priority, i});
+        std::make_heap(heap.begin(), heap.end(), by_priority);
+        std::size_t done_since_check = 0, count = heap.size();
+        while (!heap.empty() && count < options.target) {
+            std::pop_heap(heap.begin(), heap.end(), by_priority);
+            const std::uint32_t top = heap.back().second;
+            heap.pop_back();
             Node a, b;
-            if (node.priority < 0 || !SplitNode(items, node, options.adaptive, a, b)) {
-                leaves.push_back(node);
+            if (!SplitNode(items, scratch, nodes[top], options.adaptive, a, b)) {
+                leaves.push_back(nodes[top]);
                 continue;
             }
-            queue.push(std::move(a));
-            queue.push(std::move(b));
+            nodes[top] = a;
+            nodes.push_back(b);
+            heap.push_back({a.priority, top});
+            std::push_heap(heap.begin(), heap.end(), by_priority);
+            heap.push_back({b.priority, static_cast<std::uint32_t>(nodes.size() - 1)});
+            std::push_heap(heap.begin(), heap.end(), by_priority);
+            ++count;
             if (++done_since_check == 4096) {
-                progress.Advance(4096.0 / static_cast<double>(options.target));
+                progress.Advance(0.5 * 4096.0 / static_cast<double>(options.target));
                 done_since_check = 0;
             }
         }
-        while (!queue.empty()) {
-            leaves.push_back(queue.top());
-            queue.pop();
-        }
+        for (const Entry& e : heap) leaves.push_back(nodes[e.second]);
     } else {
         // Recursive variant: split while larger than n_max, more varied than sigma_max
         // (adaptive) or farther from the cluster plane than the error bound.
@@ -205,7 +348,7 @@ Clustering HierarchicalClustering(std::span<const Vec3f> points, const SimplifyO
             if (!split && options.adaptive) split = node.spread.Variation() > options.max_variation;
             if (!split && options.error > 0) split = MaxPlaneDistance(items, node) > options.error;
             Node a, b;
-            if (split && SplitNode(items, node, options.adaptive, a, b)) {
+            if (split && SplitNode(items, scratch, node, options.adaptive, a, b)) {
                 stack.push_back(std::move(b));
                 stack.push_back(std::move(a));
                 continue;
@@ -215,7 +358,6 @@ Clustering HierarchicalClustering(std::span<const Vec3f> points, const SimplifyO
             leaves.push_back(std::move(node));
         }
     }
-    std::sort(leaves.begin(), leaves.end(), [](const Node& a, const Node& b) { return a.begin < b.begin; });
     return LabelsFromNodes(items, leaves, n);
 }
 

@@ -9,6 +9,7 @@
 #include "surfel/base/validate.h"
 #include "surfel/simplify/simplify_internal.h"
 #include "surfel/spatial/kd_tree.h"
+#include "surfel/spatial/neighbor_radii.h"
 #include "surfel/surface/local_analysis.h"
 #include "surfel/surface/poly_fit.h"
 
@@ -97,7 +98,7 @@ void RepresentativesOnSurface(std::span<const Vec3f> points, const Clustering& c
 }
 
 PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> normals, const Clustering& clusters,
-                             std::span<const Vec3f> positions) {
+                             std::span<const Vec3f> positions, bool positions_only) {
     const std::size_t n = input.size(), m = clusters.count;
     SURFEL_CHECK(clusters.label.size() == n);
     SURFEL_CHECK(positions.empty() || positions.size() == m);
@@ -117,6 +118,7 @@ PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> nor
     for (std::size_t c = 0; c < m; ++c)
         out.positions[c] = positions.empty() ? Vec3f((sum[c] / std::max(1u, count[c])).cast<float>()) : positions[c];
     if (positions.empty()) RepresentativesOnSurface(input.positions, clusters, count, out.positions);
+    if (positions_only) return out;
 
     // The nearest input point stands in for clusters without members (particles can end up
     // with none) and for normals that cancel out.
@@ -135,6 +137,23 @@ PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> nor
             out.normals[c] = len > 1e-6 * count[c] && count[c] > 0 ? Vec3f((nsum[c] / len).cast<float>())
                                                                     : normals[nearest_input(out.positions[c])];
         }
+    } else if (m >= 3 && clusters.normals.size() == m) {
+        // The clusters' own normals (hierarchical: the v0 of each cluster's covariance, notes
+        // 1.2, over all of its members), oriented over the representatives (notes 1.2, MST). A
+        // cluster too small or too thin for a plane takes the covariance normal of its nearest
+        // representatives.
+        out.normals = clusters.normals;
+        std::vector<Neighbor> near;
+        for (std::size_t c = 0; c < m; ++c) {
+            if (out.normals[c] != Vec3f::Zero()) continue;
+            out_tree->Knn(out.positions[c], std::min<int>(16, static_cast<int>(m)), &near);
+            std::vector<std::uint32_t> idx;
+            for (const Neighbor& nb : near) idx.push_back(nb.index);
+            out.normals[c] = AnalyzeNeighborhood(out.positions, idx).normal.cast<float>();
+        }
+        NormalOptions no;
+        no.orient_k = std::min<int>(10, static_cast<int>(m) - 1);
+        OrientNormals(*out_tree, out.normals, no);
     } else if (m >= 3) {
         NormalOptions no;
         no.k = std::min<int>(16, static_cast<int>(m) - 1);
@@ -167,8 +186,9 @@ PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> nor
     }
     out.radii.resize(m);
     if (out_tree) {
-        const KnnTable nn = out_tree->KnnAll(1);
-        for (std::size_t c = 0; c < m; ++c) out.radii[c] = std::max(cover[c], std::sqrt(nn.Dist2(c)[0]));
+        // The nearest other representative (a grid, exact: the same as the tree's KnnAll(1)).
+        const std::vector<float> nn = KthNeighborDistances(out.positions, 1, out_tree.get());
+        for (std::size_t c = 0; c < m; ++c) out.radii[c] = std::max(cover[c], nn[c]);
     } else {
         out.radii = cover;
     }
@@ -205,7 +225,9 @@ SimplifyResult Simplify(const PointCloud& input, const SimplifyOptions& options,
         NormalOptions no;
         no.k = std::min<int>(16, static_cast<int>(n) - 1);
         no.orient_k = std::min<int>(10, static_cast<int>(n) - 1);
-        no.orient = normals.empty();
+        // The particles need only tangent planes (unoriented normals, 2.3.3): their own normals are
+        // oriented after the run, over the m particles instead of the n input points.
+        no.orient = normals.empty() && options.method != SimplifyMethod::kParticle;
         NormalResult nr = EstimateNormals(tree, no);
         if (normals.empty()) {
             normals = std::move(nr.normals);
@@ -249,9 +271,15 @@ SimplifyResult Simplify(const PointCloud& input, const SimplifyOptions& options,
         }
     }
     tracker.Check();
-    result.cloud = BuildFromClusters(input, normals, clusters, positions);
-    if (!particle_normals.empty()) {
+    result.cloud = BuildFromClusters(input, normals, clusters, positions, options.positions_only);
+    if (!particle_normals.empty() && !options.positions_only) {
         result.cloud.normals = particle_normals;  // the MLS normals at the projected positions
+        if (report.normals_estimated && result.cloud.size() >= 3) {  // input normals unoriented: orient these
+            const KdTree ptree(result.cloud.positions);
+            NormalOptions no;
+            no.orient_k = std::min<int>(10, static_cast<int>(result.cloud.size()) - 1);
+            OrientNormals(ptree, result.cloud.normals, no);
+        }
         // Radii were measured in the planes of the member-averaged normals; close enough, and
         // the nearest-neighbour floor still holds.
     }

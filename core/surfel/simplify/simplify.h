@@ -78,6 +78,10 @@ struct SimplifyOptions {
     int neighbors = 6;
     /// Relaxation steps of the particle simulation, 0..kMaxParticleIterations.
     int particle_iterations = 40;
+    /// Positions alone: no normals, splat radii or colours in the result (what CGAL's
+    /// simplification functions return; for a caller that estimates them afterwards). Iterative
+    /// and particle simulation still estimate the input normals they run on.
+    bool positions_only = false;
     bool measure_error = true;          ///< Compute the quality report (Delta_max, Delta_avg).
     std::size_t error_samples = 20000;  ///< |Q| for the quality report (0 = every input point).
 
@@ -119,6 +123,9 @@ SimplifyResult Simplify(const PointCloud& input, const SimplifyOptions& options,
 struct Clustering {
     std::vector<std::uint32_t> label;
     std::size_t count = 0;
+    /// Optional unoriented normal per cluster (hierarchical: the cluster covariance's v0); a zero
+    /// vector where the cluster gives none. Empty: none at all.
+    std::vector<Vec3f> normals;
 };
 
 /// Builds the output cloud from a clustering: `positions` (one per cluster) or, when empty, the
@@ -126,8 +133,9 @@ struct Clustering {
 /// least-squares quadratic height field (a centroid lies inside a bent surface); normals as the normalised sum of the members' oriented
 /// normals (`normals` may be empty: then estimated on the output and oriented); colours averaged;
 /// radius = the largest distance of a member from the representative, at least the distance to the nearest other representative, so splats leave no holes.
+/// `positions_only`: the representatives alone (no normals, radii or colours).
 PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> normals, const Clustering& clusters,
-                             std::span<const Vec3f> positions = {});
+                             std::span<const Vec3f> positions = {}, bool positions_only = false);
 
 /// Current peak resident set size of this process in MiB (Linux VmHWM), 0 when unknown.
 double PeakResidentMiB();

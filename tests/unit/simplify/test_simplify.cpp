@@ -162,6 +162,61 @@ TEST(Simplify, LargeClustersAreRepresentedOnTheSurfaceNotInsideIt) {
     }
 }
 
+TEST(Simplify, PositionsOnlyGivesTheSamePositionsAndNoAttributes) {
+    const PointCloud c = Sphere(20000);
+    for (const SimplifyMethod m : kAllMethods) {
+        SimplifyOptions o;
+        o.method = m;
+        o.target = 500;
+        o.measure_error = false;
+        const SimplifyResult full = Simplify(c, o);
+        o.positions_only = true;
+        const SimplifyResult bare = Simplify(c, o);
+        EXPECT_EQ(bare.cloud.positions, full.cloud.positions) << SimplifyMethodName(m);
+        EXPECT_TRUE(bare.cloud.normals.empty() && bare.cloud.radii.empty()) << SimplifyMethodName(m);
+    }
+}
+
+TEST(Simplify, HierarchicalNormalsComeFromTheClustersAndPointOutward) {
+    // The uniform hierarchy splits 100k points in parallel up to a size, then by the queue: at
+    // 1 % and 10 % every normal of the unit sphere is radial (the clusters' own covariance
+    // normals) and oriented outward.
+    const PointCloud c = Sphere(100000);
+    for (const std::size_t target : {1000u, 10000u}) {
+        const SimplifyResult r = RunSimplify(c, SimplifyMethod::kHierarchical, target);
+        ASSERT_EQ(r.cloud.size(), target);
+        double worst = 1.0;
+        std::size_t off = 0;
+        for (std::size_t i = 0; i < r.cloud.size(); ++i) {
+            const double d = r.cloud.normals[i].dot(r.cloud.positions[i].normalized());
+            worst = std::min(worst, d);
+            off += d < std::cos(10.0 * M_PI / 180.0);
+        }
+        EXPECT_GT(worst, std::cos(10.0 * M_PI / 180.0)) << target << " off " << off;
+    }
+}
+
+TEST(Simplify, HierarchicalParallelSplitsGiveTheSameClustersWhateverTheThreadCount) {
+    // 60k points: subtrees above 4096 points are split in parallel (SameOutputWhateverTheThreadCount's
+    // 8k sphere never gets there).
+    const PointCloud c = Sphere(60000);
+    for (const std::size_t target : {600u, 6000u}) {
+        SimplifyResult one, many;
+        {
+            tbb::global_control limit(tbb::global_control::max_allowed_parallelism, 1);
+            one = RunSimplify(c, SimplifyMethod::kHierarchical, target);
+        }
+        {
+            tbb::global_control limit(tbb::global_control::max_allowed_parallelism, 4);
+            many = RunSimplify(c, SimplifyMethod::kHierarchical, target);
+        }
+        ASSERT_EQ(one.cloud.size(), target);
+        EXPECT_EQ(one.cloud.positions, many.cloud.positions) << target;
+        EXPECT_EQ(one.cloud.normals, many.cloud.normals) << target;
+        EXPECT_EQ(one.cloud.radii, many.cloud.radii) << target;
+    }
+}
+
 TEST(Simplify, HierarchicalErrorBoundKeepsClustersFlat) {
     const PointCloud c = Sphere(20000);
     std::size_t last = 0;
