@@ -124,7 +124,8 @@ public:
         if (cloud.empty()) throw Error(ErrorCode::kInvalidArgument, "render: the cloud has no points");
         const RenderOptions options = ToRenderOptions(job, cloud.Bounds());
         WithFieldPrefix("render", [&] { options.Validate(); });
-        const RenderResult r = Render(cloud, options, progress);
+        RenderResult r;
+        WithFieldPrefix("render", [&] { r = Render(cloud, options, progress); });
         ImageWriteOptions w;
         w.half = job.format() == v1::RenderJob::EXR_HALF;
         JobOutput out;
