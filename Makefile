@@ -9,8 +9,9 @@ FUZZ_SECONDS ?= 60
 FUZZERS = ply_fuzzer xyz_fuzzer cloud_fuzzer
 ASAN_BUILD ?= build-asan
 TSAN_BUILD ?= build-tsan
-# make test runs the sanitizer step too; SANITIZE=0 leaves it out (docs/testing.md has the cost).
-SANITIZE ?= 1
+# make test SANITIZE=1 runs the sanitizer step too. Off by default until the TSan reports on
+# test_worker (docs/testing.md, "Open") are triaged and the step's CI time is measured.
+SANITIZE ?= 0
 # Under ASan + UBSan: a suite of every module (core, worker, store, service, the Python client);
 # the slow end-to-end suites (CLI, degenerate inputs, service, HTTP, API fuzzer) run in Release
 # only. ASAN_LABELS=. runs everything.
