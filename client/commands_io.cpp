@@ -19,7 +19,7 @@ void RunInfo(const InfoArgs& a) {
     PlyHeaderInfo header;
     Stopwatch watch;
     const std::string bytes = ReadFileBytes(a.input);
-    const bool is_ply = bytes.starts_with("ply\n") || bytes.starts_with("ply\r\n");
+    const bool is_ply = HasPlyMagic(bytes);
     PointCloud cloud = is_ply ? ParsePly(bytes, a.input, {}, &header) : ParseXyz(bytes, a.input);
     nlohmann::json r;
     r["file"] = a.input;

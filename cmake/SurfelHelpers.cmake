@@ -5,10 +5,23 @@ add_library(surfel_warnings INTERFACE)
 target_compile_options(surfel_warnings INTERFACE -Wall -Wextra -Wpedantic -Wshadow
                        -Wnon-virtual-dtor $<$<BOOL:${SURFEL_WERROR}>:-Werror>)
 
-# Sanitizers apply to everything we build, so the tests exercise them.
+# Sanitizers apply to everything we build, so the tests exercise them. Debian's gRPC, protobuf,
+# TBB, Embree and FLANN are not instrumented: tests/sanitizers/*.supp says what that hides.
 if(SURFEL_SANITIZE)
-    add_compile_options(-fsanitize=address,undefined -fno-omit-frame-pointer -fno-sanitize-recover=all)
-    add_link_options(-fsanitize=address,undefined)
+    set(surfel_sanitizers "${SURFEL_SANITIZE}")
+    if(surfel_sanitizers STREQUAL "ON" OR surfel_sanitizers STREQUAL "1" OR surfel_sanitizers STREQUAL "TRUE")
+        set(surfel_sanitizers "address,undefined")
+    endif()
+    if(NOT surfel_sanitizers MATCHES "^(address|undefined|address,undefined|undefined,address|thread)$")
+        message(FATAL_ERROR "SURFEL_SANITIZE=${SURFEL_SANITIZE}: expected address,undefined or thread")
+    endif()
+    # -g1: line tables for the reports' stacks at a fraction of -g's compile time.
+    add_compile_options(-fsanitize=${surfel_sanitizers} -fno-omit-frame-pointer -g1)
+    add_link_options(-fsanitize=${surfel_sanitizers})
+    if(surfel_sanitizers MATCHES "undefined")
+        # A report is a failure, never a line in a log (UBSan recovers by default).
+        add_compile_options(-fno-sanitize-recover=all)
+    endif()
 endif()
 
 # surfel_add_module(NAME SOURCES ... DEPS ... [PRIVATE_DEPS ...])
@@ -32,7 +45,9 @@ function(surfel_add_test name)
         SURFEL_SHARED_DATA_DIR="${PROJECT_SOURCE_DIR}/../shared/data"
         SURFEL_BIN_DIR="${CMAKE_RUNTIME_OUTPUT_DIRECTORY}")
     set_target_properties(${name} PROPERTIES RUNTIME_OUTPUT_DIRECTORY ${CMAKE_BINARY_DIR}/tests)
-    # The image plugin lives in build/bin/, not beside the test binaries (build/tests/).
-    gtest_discover_tests(${name} DISCOVERY_TIMEOUT 60 PROPERTIES TIMEOUT 300
+    # The image plugin lives in build/bin/, not beside the test binaries (build/tests/). The
+    # binary's name is each test's label: `ctest -L '^test_worker$'` runs one module's tests (the
+    # TSan build selects its suites so).
+    gtest_discover_tests(${name} DISCOVERY_TIMEOUT 60 PROPERTIES TIMEOUT 300 LABELS ${name}
                          ENVIRONMENT "SURFEL_IMAGE_PLUGIN=${SURFEL_IMAGE_PLUGIN_PATH}")
 endfunction()

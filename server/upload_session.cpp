@@ -97,14 +97,12 @@ v1::Cloud UploadSession::Finish() {
         return *existing;
     }
     std::string bytes;
-    PointCloud cloud;
+    CloudFileSummary cloud;
     try {
         bytes = ReadFileBytes(path_);
         PlyReadOptions read_limits;
         read_limits.max_points = ops_.limits().max_points;
-        cloud = ParsePointCloud(bytes, filename_, read_limits);
-        if (cloud.empty())
-            throw Error(ErrorCode::kInvalidArgument, filename_ + ": the cloud has no points");
+        cloud = InspectCloudFile(bytes, filename_, read_limits);  // what cloud_fuzzer fuzzes
     } catch (...) {
         Discard();
         ops_.metrics().CountUpload(false);
@@ -116,16 +114,15 @@ v1::Cloud UploadSession::Finish() {
     committed_ = 0;
     v1::Cloud c;
     c.set_id(id);
-    c.set_points(cloud.size());
-    const BoundingBox box = cloud.Bounds();
-    *c.mutable_bounds_min() = worker::ToProto(box.min.cast<double>());
-    *c.mutable_bounds_max() = worker::ToProto(box.max.cast<double>());
-    for (const std::string& a : cloud.AttributeNames()) c.add_attributes(a);
+    c.set_points(cloud.points);
+    *c.mutable_bounds_min() = worker::ToProto(cloud.bounds.min.cast<double>());
+    *c.mutable_bounds_max() = worker::ToProto(cloud.bounds.max.cast<double>());
+    for (const std::string& a : cloud.attributes) c.add_attributes(a);
     c.set_size_bytes(bytes.size());
-    c.set_format(std::string(SniffCloudFormat(bytes)));
+    c.set_format(std::string(cloud.format));
     ops_.store().PutCloud(c);
     ops_.metrics().CountUpload(true);
-    spdlog::info("upload {}: stored cloud {} ({} points, {} bytes)", id_, id, cloud.size(),
+    spdlog::info("upload {}: stored cloud {} ({} points, {} bytes)", id_, id, cloud.points,
                  bytes.size());
     return c;
 }

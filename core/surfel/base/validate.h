@@ -5,6 +5,7 @@
 /// wrote (the job spec's field path); the worker and the CLI prefix their own path
 /// ("render.width: must lie in 1..16384, got 0").
 
+#include <cctype>
 #include <cmath>
 #include <sstream>
 #include <string>
@@ -57,10 +58,22 @@ inline void CheckFinite(const std::string& field, const Vec3d& v) {
     if (!std::isfinite(v.x()) || !std::isfinite(v.y()) || !std::isfinite(v.z())) InvalidField(field, "must be finite");
 }
 
+/// True when `message` starts with a field path and a colon ("width: ...", "mls.degree: ...",
+/// "lights[0].kind: ..."), not with prose ("the surface needs ...").
+inline bool StartsWithFieldPath(std::string_view message) {
+    std::size_t i = 0;
+    while (i < message.size() && (std::isalnum(static_cast<unsigned char>(message[i])) || message[i] == '_' ||
+                                  message[i] == '.' || message[i] == '[' || message[i] == ']'))
+        ++i;
+    return i > 0 && i < message.size() && message[i] == ':';
+}
+
 /// Runs `fn` (an Options::Validate(), or work whose errors name fields) and rethrows an
 /// Error(kInvalidArgument) from it with `prefix` + "." before its message: nested Options and the
 /// worker's adapters add where a field sits ("degree: ..." -> "mls.degree: ...",
-/// "width: ..." -> "render.width: ..."). A message that starts with `prefix` + ":" is kept.
+/// "width: ..." -> "render.width: ..."). A message that names no field gets `prefix` + ": "
+/// ("the surface needs ..." -> "render: the surface needs ..."); one that starts with `prefix`
+/// + ":" is kept.
 template <typename Fn>
 void WithFieldPrefix(const std::string& prefix, Fn&& fn) {
     try {
@@ -68,7 +81,7 @@ void WithFieldPrefix(const std::string& prefix, Fn&& fn) {
     } catch (const Error& e) {
         const std::string_view what = e.what();
         if (e.code() != ErrorCode::kInvalidArgument || what.rfind(prefix + ":", 0) == 0) throw;
-        throw Error(e.code(), prefix + "." + e.what());
+        throw Error(e.code(), prefix + (StartsWithFieldPath(what) ? "." : ": ") + e.what());
     }
 }
 

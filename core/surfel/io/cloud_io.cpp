@@ -124,6 +124,17 @@ PointCloud ParsePointCloud(std::string_view data, std::string_view name, const P
     return EntryForContent(data).parse(data, name, options, nullptr);
 }
 
+CloudFileSummary InspectCloudFile(std::string_view data, std::string_view name, const PlyReadOptions& options) {
+    const PointCloud cloud = ParsePointCloud(data, name, options);
+    if (cloud.empty()) throw Error(ErrorCode::kInvalidArgument, std::string(name) + ": the cloud has no points");
+    CloudFileSummary s;
+    s.points = cloud.size();
+    s.bounds = cloud.Bounds();
+    s.attributes = cloud.AttributeNames();
+    s.format = SniffCloudFormat(data);
+    return s;
+}
+
 PointCloud ReadPointCloud(const std::string& path, const PlyReadOptions& options, PlyHeaderInfo* info) {
     const std::string bytes = ReadFileBytes(path);
     return EntryForContent(bytes).parse(bytes, path, options, info);

@@ -7,8 +7,10 @@
 /// after Open3D's extension -> reader map (Open3D, io/PointCloudIO.cpp): a new format is one
 /// entry there plus its own reader/writer file.
 
+#include <cstdint>
 #include <string>
 #include <string_view>
+#include <vector>
 
 #include "surfel/base/point_cloud.h"
 #include "surfel/io/ply.h"
@@ -34,6 +36,20 @@ std::string_view SniffCloudFormat(std::string_view bytes);
 /// XYZ). `name` is used in error messages; `options` limits the counts (XYZ: max_points only).
 PointCloud ParsePointCloud(std::string_view data, std::string_view name,
                            const PlyReadOptions& options = {});
+
+/// What the service records about an uploaded cloud file (surfel.v1.Cloud without its id).
+struct CloudFileSummary {
+    std::uint64_t points = 0;
+    BoundingBox bounds;                   ///< Of the positions (all finite).
+    std::vector<std::string> attributes;  ///< PointCloud::AttributeNames()
+    std::string_view format;              ///< SniffCloudFormat: "ply-binary-le", "ply-ascii", "xyz", ...
+};
+
+/// Checks an uploaded file as the service does before it stores it, and summarises it: parsed
+/// as ParsePointCloud (the parsers' messages, `options`' limits), and refused with
+/// Error(kInvalidArgument) "<name>: the cloud has no points" when it holds none (a PLY with
+/// `element vertex 0`, an XYZ of comments). The libFuzzer target cloud_fuzzer runs it.
+CloudFileSummary InspectCloudFile(std::string_view data, std::string_view name, const PlyReadOptions& options = {});
 
 /// Reads a cloud file in the format its content shows, as ParsePointCloud. `info`, when given,
 /// receives the header of a PLY file (left untouched for other formats).

@@ -10,6 +10,10 @@ void Fail(std::string_view file, const std::string& message) {
     throw Error(ErrorCode::kInvalidArgument, std::string(file) + ": " + message);
 }
 
+bool IsBlank(std::string_view bytes) {
+    return bytes.find_first_not_of(" \t\r\n") == std::string_view::npos;
+}
+
 std::vector<std::string_view> Tokenize(std::string_view line) {
     std::vector<std::string_view> out;
     std::size_t i = 0;

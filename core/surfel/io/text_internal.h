@@ -12,6 +12,9 @@ namespace surfel::io_internal {
 /// Throws Error(kInvalidArgument) with the message "<file>: <message>".
 [[noreturn]] void Fail(std::string_view file, const std::string& message);
 
+/// True when `bytes` is empty or holds only spaces, tabs, CR and LF: no content at all.
+bool IsBlank(std::string_view bytes);
+
 /// Splits a line at spaces, tabs and carriage returns; empty fields are dropped.
 std::vector<std::string_view> Tokenize(std::string_view line);
 

@@ -14,6 +14,9 @@ using io_internal::Quote;
 using io_internal::Tokenize;
 
 PointCloud ParseXyz(std::string_view data, std::string_view file, std::uint64_t max_points) {
+    if (io_internal::IsBlank(data))
+        Fail(file, data.empty() ? "empty file (0 bytes): not a point cloud"
+                                : "only whitespace (" + std::to_string(data.size()) + " bytes): not a point cloud");
     PointCloud cloud;
     std::size_t pos = 0;
     int line_no = 0;
@@ -53,6 +56,9 @@ PointCloud ParseXyz(std::string_view data, std::string_view file, std::uint64_t 
 }
 
 std::string FormatXyz(const PointCloud& cloud) {
+    // XYZ has no header: an empty cloud is one comment line, which reads back as 0 points
+    // (an empty file does not).
+    if (cloud.empty()) return "# 0 points\n";
     std::string out;
     out.reserve(cloud.size() * 40);
     for (std::size_t i = 0; i < cloud.size(); ++i) {

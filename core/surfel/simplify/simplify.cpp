@@ -203,6 +203,10 @@ SimplifyResult Simplify(const PointCloud& input, const SimplifyOptions& options,
     if (options.target > n)
         InvalidField("target", "must not exceed the input's " + std::to_string(n) + " points, got " +
                                    std::to_string(options.target));
+    // Its neighbour graph takes at least 2 neighbours a point (issue 18: a 1- or 2-point cloud
+    // indexed past the kd-tree's padded rows).
+    if (options.method == SimplifyMethod::kIncremental && n < 3)
+        throw Error(ErrorCode::kInvalidArgument, "simplify: incremental clustering needs at least 3 input points");
     if (options.method == SimplifyMethod::kParticle && n < 8)
         throw Error(ErrorCode::kInvalidArgument, "simplify: particle simulation needs at least 8 input points");
 

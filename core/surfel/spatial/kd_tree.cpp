@@ -7,6 +7,7 @@
 #include <flann/algorithms/kdtree_single_index.h>
 #include <flann/flann.hpp>
 #include <limits>
+#include <sstream>
 
 #include "surfel/base/error.h"
 
@@ -68,7 +69,37 @@ struct KdTree::Impl {
     flann::SearchParams params{flann::FLANN_CHECKS_UNLIMITED, 0.0f, false};
 };
 
+// ---- The range single-precision distances can hold ---------------------------------------------
+
+namespace {
+
+void CheckCoordinateRange(std::span<const Vec3f> points) {
+    Vec3f lo = Vec3f::Constant(std::numeric_limits<float>::infinity()), hi = -lo;
+    for (std::size_t i = 0; i < points.size(); ++i) {
+        const Vec3f& p = points[i];
+        if (!(p.cwiseAbs().maxCoeff() <= kMaxKdTreeCoordinate)) {  // also NaN
+            std::ostringstream os;
+            os << "point " << i << ": coordinates (" << p.x() << ", " << p.y() << ", " << p.z() << ") "
+               << (p.allFinite() ? "exceed " : "are not finite; the limit is ") << "+-" << kMaxKdTreeCoordinate
+               << " (squared distances must fit in single precision): scale the cloud";
+            throw Error(ErrorCode::kInvalidArgument, os.str());
+        }
+        lo = lo.cwiseMin(p);
+        hi = hi.cwiseMax(p);
+    }
+    const float extent = points.empty() ? 0.0f : (hi - lo).maxCoeff();
+    if (extent > 0 && extent < kMinKdTreeExtent) {
+        std::ostringstream os;
+        os << "the cloud spans only " << extent << " (below " << kMinKdTreeExtent
+           << ", squared distances underflow single precision): scale the cloud";
+        throw Error(ErrorCode::kInvalidArgument, os.str());
+    }
+}
+
+}  // namespace
+
 KdTree::KdTree(std::span<const Vec3f> points) : impl_(std::make_unique<Impl>()) {
+    CheckCoordinateRange(points);
     impl_->points.assign(points.begin(), points.end());
     if (impl_->points.size() >= std::numeric_limits<std::uint32_t>::max())
         throw Error(ErrorCode::kResourceExhausted, "too many points for the kd-tree: " + std::to_string(points.size()));

@@ -29,11 +29,21 @@ struct KnnTable {
     std::span<const float> Dist2(std::size_t i) const { return {dist2.data() + i * k, static_cast<std::size_t>(k)}; }
 };
 
+/// Largest coordinate magnitude a KdTree accepts: squared distances are single precision, and
+/// beyond this one between two points (at most 3 (2e18)^2 ~ 1.2e37) could overflow to infinity.
+inline constexpr float kMaxKdTreeCoordinate = 1e18f;
+/// Smallest non-zero extent (largest side of the bounding box) a KdTree accepts: below it the
+/// squared distances underflow single precision and every neighbour looks equally near.
+inline constexpr float kMinKdTreeExtent = 1e-18f;
+
 /// An exact kd-tree over a copy of the positions. Construction is O(n log n); every query is
 /// const and safe to run from many threads at once. Results are exact (checked against brute
 /// force in tests) and deterministic.
 class KdTree {
 public:
+    /// Throws Error(kInvalidArgument) naming the point for a coordinate that is not finite or
+    /// exceeds kMaxKdTreeCoordinate in magnitude, and naming the extent for a cloud whose
+    /// bounding box is smaller than kMinKdTreeExtent but not a single point: scale such a cloud.
     explicit KdTree(std::span<const Vec3f> points);
     ~KdTree();
     KdTree(const KdTree&) = delete;

@@ -182,6 +182,27 @@ TEST(Xyz, RoundTripAndComments) {
     EXPECT_EQ(r.normals, c.normals);
 }
 
+// An empty or blank file is not a point cloud (XYZ has no header, so it used to read as 0 points);
+// an empty cloud written as XYZ is one comment line and reads back.
+TEST(Xyz, EmptyFileIsNotACloudButAnEmptyCloudRoundTrips) {
+    for (const std::string& bytes : {std::string(), std::string(" \n\r\n\t")}) {
+        for (auto parse : {+[](std::string_view b) { return ParseXyz(b, "e.xyz"); },
+                           +[](std::string_view b) { return ParsePointCloud(b, "e.xyz"); }}) {
+            try {
+                parse(bytes);
+                ADD_FAILURE() << "a blank file of " << bytes.size() << " bytes parsed";
+            } catch (const Error& e) {
+                EXPECT_EQ(e.code(), ErrorCode::kInvalidArgument);
+                EXPECT_EQ(std::string(e.what()),
+                          bytes.empty() ? "e.xyz: empty file (0 bytes): not a point cloud"
+                                        : "e.xyz: only whitespace (5 bytes): not a point cloud");
+            }
+        }
+    }
+    EXPECT_EQ(FormatXyz(PointCloud{}), "# 0 points\n");
+    EXPECT_EQ(ParsePointCloud(FormatXyz(PointCloud{}), "e.xyz").size(), 0u);
+}
+
 TEST(Files, WriteThenReadByExtensionAndMissingFile) {
     const auto dir = std::filesystem::temp_directory_path() / ("surfel_io_" + std::to_string(::getpid()));
     std::filesystem::create_directories(dir);

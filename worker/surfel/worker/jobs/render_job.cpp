@@ -129,7 +129,8 @@ public:
         // deadline meanwhile stops right after, before the render's setup.
         LoadImageCodec();
         if (progress && !progress(0.0)) throw Error(ErrorCode::kCancelled, "render: cancelled while loading the image plugin");
-        const RenderResult r = Render(cloud, options, progress);
+        RenderResult r;
+        WithFieldPrefix("render", [&] { r = Render(cloud, options, progress); });
         ImageWriteOptions w;
         w.half = job.format() == v1::RenderJob::EXR_HALF;
         JobOutput out;
