@@ -325,7 +325,10 @@ TEST_F(ScaleOutTest, KilledServerTheOtherServesAndWatchCrossesServers) {
     StartCluster();
     ServiceClient a(servers_[0]->target()), b(servers_[1]->target());
     const std::string cloud = a.UploadFile(Path("torus.ply")).id();
-    const std::string id = a.Submit(Render(cloud, 256, 256, 2)).id();
+    // Long enough (about a second on an idle 2-core machine) that progress crosses processes
+    // several times: a 256 x 256, 2-sample render finished between two hints once the render got
+    // faster.
+    const std::string id = a.Submit(Render(cloud, 512, 512, 6)).id();
     std::vector<double> fractions;
     auto o =
         b.Watch(id, false, false, [&](const std::string&, double f) { fractions.push_back(f); });
