@@ -1,8 +1,8 @@
 # Surfel: the two entry points of the README.
 #   make demo   install what is missing, build, run the main job on a sample cloud (results in out/);
 #               SERVE=1 keeps the server and its web page up until Ctrl-C
-#   make test   install what is missing, build, run every test (ctest), the cloud-file fuzzers for
-#               60 s in all, and the suites under ASan + UBSan and TSan (docs/testing.md)
+#   make test   install what is missing, build, run every test (ctest) and the cloud-file fuzzers for
+#               60 s in all; SANITIZE=1 adds the suites under ASan + UBSan and TSan (docs/testing.md)
 BUILD ?= build
 FUZZ_BUILD ?= build-fuzz
 FUZZ_SECONDS ?= 60
