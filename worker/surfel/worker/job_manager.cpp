@@ -47,6 +47,18 @@ v1::JobEvent FinishedEvent(const v1::Job& job) {
     return e;
 }
 
+void SetResult(v1::Job& job, const JobOutput& out) {
+    v1::JobResult* r = job.mutable_result();
+    r->set_media_type(out.media_type);
+    r->set_extension(out.extension);
+    r->set_size_bytes(out.bytes.size());
+    r->set_report_json(out.report.dump());
+    r->set_points(out.points);
+    r->set_time_ms(out.time_ms);
+    job.set_fraction(1.0);
+    job.set_stage("done");
+}
+
 }  // namespace detail
 
 using detail::FailedEvent;
@@ -321,15 +333,7 @@ void JobManager::Execute(const std::string& id) {
         WriteFileBytes(store_.ResultPath(id), out.bytes);  // atomic: complete before it is announced
         std::lock_guard lock(mutex_);
         done = run->job;
-        v1::JobResult* r = done.mutable_result();
-        r->set_media_type(out.media_type);
-        r->set_extension(out.extension);
-        r->set_size_bytes(out.bytes.size());
-        r->set_report_json(out.report.dump());
-        r->set_points(out.points);
-        r->set_time_ms(out.time_ms);
-        done.set_fraction(1.0);
-        done.set_stage("done");
+        detail::SetResult(done, out);
         Transition(done, v1::SUCCEEDED);
         Notify(id, FinishedEvent(done));
         running_.erase(id);  // in the same critical section: Get never sees a stale RUNNING

@@ -8,6 +8,7 @@
 #include <string>
 
 #include "surfel/v1/surfel.pb.h"
+#include "surfel/worker/job_kind.h"
 #include "surfel/worker/job_manager.h"
 
 namespace surfel::worker {
@@ -33,5 +34,8 @@ std::string NewJobId();
 v1::JobEvent FailedEvent(const v1::Job& job);
 /// The `finished` event of a SUCCEEDED job (its result).
 v1::JobEvent FinishedEvent(const v1::Job& job);
+/// Fills `job`'s result from what RunJob gave (media type, extension, size, report, points,
+/// time) and marks it done (fraction 1, stage "done"); the state is the caller's to set.
+void SetResult(v1::Job& job, const JobOutput& out);
 
 }  // namespace surfel::worker::detail

@@ -424,15 +424,7 @@ void JobManager::ExecuteLeased(LeasedJob leased) {
         WriteFileBytes(store_.ResultPath(id), out.bytes);
         std::lock_guard lock(mutex_);
         done = run->job;
-        v1::JobResult* r = done.mutable_result();
-        r->set_media_type(out.media_type);
-        r->set_extension(out.extension);
-        r->set_size_bytes(out.bytes.size());
-        r->set_report_json(out.report.dump());
-        r->set_points(out.points);
-        r->set_time_ms(out.time_ms);
-        done.set_fraction(1.0);
-        done.set_stage("done");
+        detail::SetResult(done, out);
         done.set_state(v1::SUCCEEDED);
     } catch (...) {
         grpc::Status status = CurrentExceptionStatus();
