@@ -18,13 +18,16 @@ Executor::Executor(std::size_t threads, std::size_t max_queued) : max_queued_(st
     for (std::size_t i = 0; i < threads; ++i) threads_.emplace_back([this] { Loop(); });
 }
 
-Executor::~Executor() {
+Executor::~Executor() { Stop(); }
+
+void Executor::Stop() {
     {
         std::lock_guard lock(mutex_);
         stopping_ = true;
     }
     wake_.notify_all();
-    for (std::thread& t : threads_) t.join();
+    for (std::thread& t : threads_)
+        if (t.joinable()) t.join();
 }
 
 bool Executor::TrySubmit(std::function<void()> task) {

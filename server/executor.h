@@ -17,9 +17,14 @@ class Executor {
 public:
     /// Starts `threads` threads (at least 1); at most `max_queued` tasks wait for one (at least 1).
     Executor(std::size_t threads, std::size_t max_queued);
-    /// Runs every task still queued, then joins the threads. No accepted task is dropped: each
-    /// one ends an upload call, and a call never ended would never reach OnDone.
+    /// Stop(): runs every task still queued, then joins the threads.
     ~Executor();
+    /// Refuses new tasks, runs every task still queued, then joins the threads (idempotent). No
+    /// accepted task is dropped: each one ends an upload call, and a call never ended would never
+    /// reach OnDone. The server calls it after grpc::Server::Shutdown and before the objects its
+    /// tasks use (Operations, the store) are destroyed: a task may still be returning from the
+    /// call's Finish when Shutdown returns.
+    void Stop();
     Executor(const Executor&) = delete;
     Executor& operator=(const Executor&) = delete;
 

@@ -277,6 +277,7 @@ int main(int argc, char** argv) {
         if (http) http->Stop();
         jobs.Shutdown(static_cast<std::int64_t>(f.grace_s * 1000));
         server->Shutdown(std::chrono::system_clock::now() + std::chrono::seconds(2));
+        ingest.Stop();  // its last tasks may still be returning from Finish; ops outlives them
         done = true;
         gauge.join();
         spdlog::info("stopped");

@@ -1,6 +1,7 @@
 #include "surfel/spatial/kd_tree.h"
 
 #include <tbb/blocked_range.h>
+#include <tbb/global_control.h>
 #include <tbb/parallel_for.h>
 
 #include <algorithm>
@@ -11,8 +12,27 @@
 
 #include "surfel/base/error.h"
 
+#if defined(__SANITIZE_THREAD__)
+#define SURFEL_UNDER_TSAN 1
+#elif defined(__has_feature)
+#if __has_feature(thread_sanitizer)
+#define SURFEL_UNDER_TSAN 1
+#endif
+#endif
+
 namespace surfel {
 namespace {
+
+#if defined(SURFEL_UNDER_TSAN)
+// Under ThreadSanitizer only (make tsan-test; docs/testing.md): Debian's libtbb is not
+// instrumented, so the hand-off from a TBB worker's parallel_for body back to the caller is
+// invisible to TSan, and every later write to memory a worker touched (a stack slot, a freed
+// vector) is reported as a race. Run every TBB loop on its calling thread instead: the races TSan
+// is here for, between the job manager's, gRPC's and the HTTP front's own threads, are untouched,
+// and results do not depend on the thread count (tests assert that separately). This object is in
+// kd_tree.cpp because every binary that runs a TBB loop links the k-d tree.
+const tbb::global_control tsan_serial_tbb(tbb::global_control::max_allowed_parallelism, 1);
+#endif
 
 using FlannTree = flann::KDTreeSingleIndex<flann::L2_Simple<float>>;
 
