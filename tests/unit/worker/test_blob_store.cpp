@@ -109,7 +109,7 @@ protected:
 };
 
 INSTANTIATE_TEST_SUITE_P(Backends, BlobStoreTest, ::testing::Values("dir", "postgres"),
-                         [](const auto& info) { return info.param; });
+                         [](const auto& p) { return p.param; });
 
 TEST_P(BlobStoreTest, PutBytesReadsBackVerifiedAndRemoves) {
     const std::string bytes = Pattern(3500);
