@@ -291,6 +291,10 @@ TEST_F(ScaleOutTest, LargeObjectBlobsRunAJobEndToEndAndCatchAFlippedByte) {
     const std::string oid =
         Cluster::Exec(url_, "SELECT oid FROM blobs WHERE key = 'clouds/" + cloud + "'");
     Cluster::Exec(url_, "SELECT lo_put(" + oid + ", 100, '\\x00'::bytea)");
+    // A fresh worker: the first one keeps the cloud parsed (from verified bytes) in its cache.
+    workers_.clear();
+    workers_.push_back(std::make_unique<WorkerProcess>("w1", url_, "postgres",
+                                                       (work_ / "w1.log").string()));
     const v1::Job bad = a.Submit(Simplify(cloud, 600));
     const auto failed = a.Watch(bad.id(), false, false);
     EXPECT_EQ(failed.state, v1::FAILED);
