@@ -34,7 +34,8 @@ nlohmann::json JobJson(const v1::Job& j) {
         out["result"] = {{"media_type", j.result().media_type()},
                          {"size_bytes", j.result().size_bytes()},
                          {"points", j.result().points()},
-                         {"time_ms", j.result().time_ms()}};
+                         {"time_ms", j.result().time_ms()},
+                         {"sha256", j.result().sha256()}};
         if (!j.result().report_json().empty()) out["report"] = nlohmann::json::parse(j.result().report_json());
     }
     if (j.state() == v1::FAILED || j.state() == v1::CANCELLED) {

@@ -17,14 +17,15 @@ using worker::CurrentExceptionStatus;
 class DownloadReactor final : public grpc::ServerWriteReactor<v1::DataChunk> {
 public:
     DownloadReactor(SurfelService& service, const v1::DownloadRequest& request) : service_(service) {
-        std::string path;
+        bool open = false;
         try {
-            path = service_.ops().Result(request.job_id()).path;
+            const ResultFile r = service_.ops().Result(request.job_id());
+            open = reader_.Open(service_.store().blobs(), r.job);
         } catch (...) {
             Finish(CurrentExceptionStatus());
             return;
         }
-        if (!reader_.Open(path)) {
+        if (!open) {
             Finish(grpc::Status(grpc::StatusCode::NOT_FOUND, "result of job " + request.job_id() + " is gone"));
             return;
         }

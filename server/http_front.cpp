@@ -367,19 +367,36 @@ struct HttpFront::Impl {
         res.set_header("Content-Disposition", std::string(inline_image ? "inline" : "attachment") +
                                                   "; filename=\"" + r.filename + "\"");
         res.set_header("Accept-Ranges", "bytes");
-        auto in = std::make_shared<std::ifstream>(r.path, std::ios::binary);
-        if (!*in) throw Error(ErrorCode::kNotFound, "result of job " + job_id + " is gone");
+        // The blob, read in chunks; a whole-body GET is checked against the result's SHA-256
+        // (VerifyingReader): on a mismatch the last chunk is never sent and the connection is
+        // closed short of Content-Length, so a client never takes a corrupt body as complete.
+        std::unique_ptr<worker::BlobReader> raw = ops.store().blobs().Open(r.key);
+        if (!raw) throw Error(ErrorCode::kNotFound, "result of job " + job_id + " is gone");
+        auto in = std::make_shared<worker::VerifyingReader>(std::move(raw), r.job.result().sha256(),
+                                                            "result of job " + job_id);
         const std::size_t chunk = ops.limits().download_chunk_bytes;
         Metrics* metrics = &ops.metrics();
+        auto position = std::make_shared<std::uint64_t>(0);
         res.set_content_provider(
             r.size, type,
-            [in, chunk, metrics](std::size_t offset, std::size_t length, DataSink& sink) {
+            [in, chunk, metrics, position, job_id](std::size_t offset, std::size_t length,
+                                                   DataSink& sink) {
                 if (!sink.is_writable()) return false;
                 std::string buf(std::min(length, chunk), '\0');
-                in->seekg(static_cast<std::streamoff>(offset));
-                in->read(buf.data(), static_cast<std::streamsize>(buf.size()));
-                const auto n = static_cast<std::size_t>(in->gcount());
-                if (n == 0) return false;  // the file got shorter
+                std::size_t n = 0;
+                try {
+                    if (offset != *position) in->Seek(offset);
+                    while (n < buf.size()) {
+                        const std::size_t got = in->Read(buf.data() + n, buf.size() - n);
+                        if (got == 0) break;
+                        n += got;
+                    }
+                } catch (const std::exception& e) {
+                    spdlog::error("HTTP GET result of job {}: {}", job_id, e.what());
+                    return false;
+                }
+                *position = offset + n;
+                if (n == 0) return false;  // the blob got shorter
                 metrics->AddBytesOut(n);
                 return sink.write(buf.data(), n);
             });

@@ -63,10 +63,10 @@ ResultFile Operations::Result(const std::string& job_id) const {
         throw Error(ErrorCode::kFailedPrecondition, "job " + job_id + " is " +
                                                         v1::JobState_Name(r.job.state()) +
                                                         "; results exist only for SUCCEEDED jobs");
-    r.path = store_.ResultPath(job_id);
-    std::error_code ec;
-    r.size = fs::file_size(r.path, ec);
-    if (ec) throw Error(ErrorCode::kNotFound, "result of job " + job_id + " is gone");
+    r.key = worker::ResultBlobKey(job_id);
+    const std::optional<std::uint64_t> size = store_.blobs().Size(r.key);
+    if (!size) throw Error(ErrorCode::kNotFound, "result of job " + job_id + " is gone");
+    r.size = *size;
     r.filename = (r.job.type().empty() ? std::string("result") : r.job.type()) + "-" +
                  job_id.substr(0, 12) + r.job.result().extension();
     return r;

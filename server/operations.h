@@ -30,7 +30,8 @@ struct ServiceLimits {
 /// A succeeded job's result file.
 struct ResultFile {
     v1::Job job;
-    std::string path;
+    /// Its blob in store().blobs() (ResultBlobKey); checked against job.result().sha256().
+    std::string key;
     std::uint64_t size = 0;
     /// A file name for a download: "<type>-<first 12 of the job id><extension>".
     std::string filename;

@@ -108,7 +108,8 @@ int main(int argc, char** argv) {
                    "processes (docs/scale-out.md)");
     app.add_option("--blobs", f.blobs,
                    "Where uploaded clouds and results live: dir:PATH (a shared mount when several machines "
-                   "share --store); default: --data-dir");
+                   "share --store), or postgres (large objects in the --store postgres://... database; "
+                   "upload part files stay in --data-dir); default: --data-dir");
     app.add_option("-w,--workers", f.workers,
                    "Worker threads running jobs here (default: one per core); 0 = an API node only, which "
                    "needs a shared --store and surfel-worker processes")
@@ -191,7 +192,7 @@ int main(int argc, char** argv) {
         // The store: SQLite in DATA_DIR (the default), or a shared PostgreSQL; blobs in --blobs.
         const std::string blob_dir = worker::BlobDirFromFlag(f.blobs, f.data_dir);
         std::unique_ptr<worker::Store> store_ptr = worker::OpenStore(
-            f.store.empty() ? "sqlite:" + f.data_dir + "/surfel.db" : f.store, blob_dir);
+            f.store.empty() ? "sqlite:" + f.data_dir + "/surfel.db" : f.store, blob_dir, f.blobs);
         worker::Store& store = *store_ptr;
         worker::ManagerOptions mo;
         mo.workers = f.workers > 0 ? static_cast<std::size_t>(f.workers) : 0;
@@ -254,7 +255,7 @@ int main(int argc, char** argv) {
         jobs.Start();
         spdlog::info("surfel-server listening on {}:{} (store {}, blobs {}, {} workers, {} ingest threads{}{})",
                      f.host, bound_port, f.store.empty() ? "sqlite in " + f.data_dir : worker::RedactDatabaseUrl(f.store),
-                     blob_dir, !mo.run_jobs ? 0u : mo.workers ? mo.workers : std::thread::hardware_concurrency(),
+                     store.blobs().Describe(), !mo.run_jobs ? 0u : mo.workers ? mo.workers : std::thread::hardware_concurrency(),
                      ingest.threads(),
                      f.metrics.empty() ? "" : ", metrics on http://", f.metrics.empty() ? "" : f.metrics + "/metrics");
         std::printf("listening on %s:%d\n", f.host.c_str(), bound_port);

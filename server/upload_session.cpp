@@ -108,9 +108,15 @@ v1::Cloud UploadSession::Finish() {
         ops_.metrics().CountUpload(false);
         throw;
     }
-    std::error_code ec;
-    fs::rename(path_, ops_.store().CloudPath(id), ec);
-    if (ec) throw Error(ErrorCode::kInternal, "storing cloud " + id + ": " + ec.message());
+    // Durable before it is recorded and acknowledged: dir backend fsync + rename + fsync of the
+    // directory; large objects one committed transaction (docs/durability.md).
+    try {
+        ops_.store().blobs().PutFile(worker::CloudBlobKey(id), path_, id);
+    } catch (...) {
+        Discard();
+        ops_.metrics().CountUpload(false);
+        throw;
+    }
     committed_ = 0;
     v1::Cloud c;
     c.set_id(id);

@@ -109,7 +109,12 @@ private:
         if (e.has_finished() || e.has_failed()) {
             final_queued_ = true;
             if (e.has_finished() && request_.include_result()) {
-                if (!reader_.Open(service_.store().ResultPath(e.job_id()))) {
+                bool open = false;
+                try {
+                    open = reader_.Open(service_.store().blobs(), e.job_id(), e.finished());
+                } catch (const std::exception&) {  // the blob store is unreachable
+                }
+                if (!open) {
                     pending_.back().clear_finished();
                     pending_.back().mutable_failed()->set_code(grpc::StatusCode::NOT_FOUND);
                     pending_.back().mutable_failed()->set_message("result of job " + e.job_id() + " is gone");

@@ -25,7 +25,9 @@ int main(int argc, char** argv) {
     bool json_logs = false;
     app.add_option("--store", store_url, "The shared store: postgres://user@host:port/db")
         ->required();
-    app.add_option("--blobs", blobs, "The shared blob directory: dir:PATH (the servers' --blobs)")
+    app.add_option("--blobs", blobs,
+                   "The shared blobs, as the servers' --blobs: dir:PATH (a shared mount), or "
+                   "postgres (large objects in the --store database)")
         ->required();
     app.add_option("--threads", threads, "Jobs run at once (each claims its own)")
         ->default_val(1)
@@ -55,7 +57,7 @@ int main(int argc, char** argv) {
         "(another worker takes them at once), exit 0. kill -9: the job runs again elsewhere after "
         "--lease-s.\n"
         "Example:\n  surfel-worker --store postgres://surfel@db:5432/surfel --blobs "
-        "dir:/mnt/surfel --threads 2");
+        "dir:/mnt/surfel --threads 2\n  surfel-worker --store postgres://surfel@db:5432/surfel --blobs postgres");
     CLI11_PARSE(app, argc, argv);
 
     auto logger = spdlog::stderr_color_mt("surfel-worker");
@@ -73,7 +75,7 @@ int main(int argc, char** argv) {
 
     try {
         std::unique_ptr<worker::Store> store =
-            worker::OpenStore(store_url, worker::BlobDirFromFlag(blobs, ""));
+            worker::OpenStore(store_url, worker::BlobDirFromFlag(blobs, ""), blobs);
         if (!store->shared())
             throw Error(ErrorCode::kInvalidArgument,
                         "--store " + store_url +
@@ -88,7 +90,7 @@ int main(int argc, char** argv) {
         worker::JobManager jobs(*store, mo);
         jobs.Start();
         spdlog::info("surfel-worker: {} threads on {} (blobs {})", threads,
-                     worker::RedactDatabaseUrl(store_url), store->data_dir());
+                     worker::RedactDatabaseUrl(store_url), store->blobs().Describe());
         std::printf("worker running\n");
         std::fflush(stdout);
         int sig = 0;

@@ -50,7 +50,7 @@ class WorkerProcess {
                                          "--store",
                                          store,
                                          "--blobs",
-                                         "dir:" + blobs,
+                                         blobs == "postgres" ? blobs : "dir:" + blobs,
                                          "--name",
                                          name,
                                          "--threads",
@@ -262,6 +262,46 @@ TEST_F(ScaleOutTest, MixedJobsAcrossTwoServersSucceedOnceWithSingleNodeBytes) {
     for (int i = 0; i < kJobs; ++i)
         EXPECT_TRUE(WithoutCapDate(bytes[i]) == WithoutCapDate(reference[i]))
             << "job " << i << " differs";
+}
+
+// --blobs postgres: one API server and one worker share no directory at all; the cloud and the
+// result are large objects in the store's database, the result's bytes are those of the
+// directory backend (the single node), and a flipped byte in the cloud's large object fails the
+// next job with DATA_LOSS naming the blob.
+TEST_F(ScaleOutTest, LargeObjectBlobsRunAJobEndToEndAndCatchAFlippedByte) {
+    servers_.push_back(std::make_unique<testing::ServerProcess>(
+        (work_ / "server-a").string(),
+        std::vector<std::string>{"--store", url_, "--blobs", "postgres", "--workers", "0"}));
+    workers_.push_back(std::make_unique<WorkerProcess>("w0", url_, "postgres",
+                                                       (work_ / "w0.log").string()));
+    ServiceClient a(servers_[0]->target());
+    const std::string cloud = a.UploadFile(Path("sphere.ply")).id();
+    EXPECT_EQ(Cluster::Exec(url_, "SELECT size FROM blobs WHERE key = 'clouds/" + cloud + "'"),
+              std::to_string(fs::file_size(Path("sphere.ply"))));
+    const std::vector<v1::JobSpec> specs = {Simplify(cloud, 700)};
+    const v1::Job job = a.Submit(specs[0]);
+    const auto out = a.Watch(job.id(), true, false);
+    ASSERT_EQ(out.state, v1::SUCCEEDED) << out.status_message << "\n" << AllWorkerLogs();
+    EXPECT_EQ(out.result.sha256(), Cluster::Exec(url_, "SELECT sha256 FROM blobs WHERE key = "
+                                                       "'results/" + job.id() + "'"));
+    EXPECT_EQ(a.Download(job.id()), out.bytes);
+    EXPECT_FALSE(fs::exists(work_ / "server-a" / "clouds" / cloud));  // nothing on disk
+    EXPECT_EQ(SingleNodeBytes(specs)[0], out.bytes);
+    // One byte of the cloud's large object flipped in the database: the next job fails.
+    const std::string oid =
+        Cluster::Exec(url_, "SELECT oid FROM blobs WHERE key = 'clouds/" + cloud + "'");
+    Cluster::Exec(url_, "SELECT lo_put(" + oid + ", 100, '\\x00'::bytea)");
+    // A fresh worker: the first one keeps the cloud parsed (from verified bytes) in its cache.
+    workers_.clear();
+    workers_.push_back(std::make_unique<WorkerProcess>("w1", url_, "postgres",
+                                                       (work_ / "w1.log").string()));
+    const v1::Job bad = a.Submit(Simplify(cloud, 600));
+    const auto failed = a.Watch(bad.id(), false, false);
+    EXPECT_EQ(failed.state, v1::FAILED);
+    EXPECT_EQ(failed.status_code, grpc::StatusCode::DATA_LOSS) << failed.status_message;
+    EXPECT_NE(failed.status_message.find("blob " + cloud + " (cloud " + cloud + ") is corrupt"),
+              std::string::npos)
+        << failed.status_message;
 }
 
 // kill -9 of the worker running a job: another worker finishes it within the lease + 5 s.
@@ -519,7 +559,10 @@ TEST(ScaleOutFlags, RefusedCombinationsNameTheFlag) {
     EXPECT_NE(out.find("needs a shared store (--store postgres://...)"), std::string::npos) << out;
     std::tie(rc, out) = RunCommand(server + " --blobs postgres");
     EXPECT_EQ(rc, 1);
-    EXPECT_NE(out.find("--blobs postgres: large-object blobs are not built yet"), std::string::npos)
+    EXPECT_NE(out.find("--blobs postgres: needs --store postgres://"), std::string::npos) << out;
+    std::tie(rc, out) = RunCommand(server + " --blobs s3://bucket");
+    EXPECT_EQ(rc, 1);
+    EXPECT_NE(out.find("--blobs s3://bucket: expected dir:PATH or postgres"), std::string::npos)
         << out;
     std::tie(rc, out) = RunCommand(server + " --store mysql://x");
     EXPECT_EQ(rc, 1);

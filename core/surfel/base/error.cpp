@@ -12,6 +12,7 @@ std::string_view ErrorCodeName(ErrorCode code) {
         case ErrorCode::kUnavailable: return "Unavailable";
         case ErrorCode::kFailedPrecondition: return "FailedPrecondition";
         case ErrorCode::kInternal: return "Internal";
+        case ErrorCode::kDataLoss: return "DataLoss";
     }
     return "Unknown";
 }

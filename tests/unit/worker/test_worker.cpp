@@ -32,6 +32,7 @@ TEST(Status, EveryErrorCodeMapsToItsGrpcCode) {
         {ErrorCode::kUnavailable, grpc::StatusCode::UNAVAILABLE},
         {ErrorCode::kFailedPrecondition, grpc::StatusCode::FAILED_PRECONDITION},
         {ErrorCode::kInternal, grpc::StatusCode::INTERNAL},
+        {ErrorCode::kDataLoss, grpc::StatusCode::DATA_LOSS},
     };
     for (const auto& [code, grpc_code] : table) {
         EXPECT_EQ(ToStatusCode(code), grpc_code) << ErrorCodeName(code);
@@ -118,6 +119,8 @@ TEST_F(ManagerTest, RunsAJobAndStoresItsResult) {
     ASSERT_EQ(done.state(), v1::SUCCEEDED) << done.status_message();
     EXPECT_EQ(done.result().points(), 300u);
     EXPECT_EQ(ParsePly(ReadFileBytes(store_->ResultPath(job.id())), "r").size(), 300u);
+    // Its SHA-256 is recorded with it, for the check on download.
+    EXPECT_EQ(done.result().sha256(), Sha256Hex(ReadFileBytes(store_->ResultPath(job.id()))));
     // An identical submission returns the finished job at once.
     const v1::Job again = m.Submit(Simplify(300));
     EXPECT_EQ(again.id(), job.id());

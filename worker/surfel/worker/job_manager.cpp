@@ -47,6 +47,12 @@ v1::JobEvent FinishedEvent(const v1::Job& job) {
     return e;
 }
 
+std::string StoreResult(Store& store, const std::string& job_id, std::string_view bytes) {
+    const std::string sha = Sha256Hex(bytes);
+    store.blobs().PutBytes(ResultBlobKey(job_id), bytes, sha);
+    return sha;
+}
+
 void SetResult(v1::Job& job, const JobOutput& out) {
     v1::JobResult* r = job.mutable_result();
     r->set_media_type(out.media_type);
@@ -285,7 +291,9 @@ std::shared_ptr<const PointCloud> JobManager::LoadCloud(const std::string& id) {
     if (!store_.FindCloud(id)) throw Error(ErrorCode::kNotFound, "cloud " + id + " not found");
     PlyReadOptions limits;
     limits.max_points = options_.max_points;
-    const std::string bytes = ReadFileBytes(store_.CloudPath(id));
+    // Hashed while read (one pass over the bytes): a cloud's id is its SHA-256, so a flipped
+    // byte on disk fails the job with DATA_LOSS instead of giving a wrong result.
+    const std::string bytes = ReadVerified(store_.blobs(), CloudBlobKey(id), id, "cloud " + id);
     auto cloud = std::make_shared<const PointCloud>(ParsePointCloud(bytes, "cloud " + id, limits));
     std::lock_guard lock(cache_mutex_);
     cache_.emplace_front(id, cloud);
@@ -330,10 +338,11 @@ void JobManager::Execute(const std::string& id) {
     try {
         const JobOutput out =
             RunJob(run->job.spec(), [&](const std::string& cloud_id) { return LoadCloud(cloud_id); }, progress);
-        WriteFileBytes(store_.ResultPath(id), out.bytes);  // atomic: complete before it is announced
+        const std::string sha = detail::StoreResult(store_, id, out.bytes);  // durable first
         std::lock_guard lock(mutex_);
         done = run->job;
         detail::SetResult(done, out);
+        done.mutable_result()->set_sha256(sha);
         Transition(done, v1::SUCCEEDED);
         Notify(id, FinishedEvent(done));
         running_.erase(id);  // in the same critical section: Get never sees a stale RUNNING

@@ -34,6 +34,9 @@ std::string NewJobId();
 v1::JobEvent FailedEvent(const v1::Job& job);
 /// The `finished` event of a SUCCEEDED job (its result).
 v1::JobEvent FinishedEvent(const v1::Job& job);
+/// Stores a job's result bytes as its blob (ResultBlobKey), durable before it returns, and
+/// returns their SHA-256 for JobResult.sha256.
+std::string StoreResult(Store& store, const std::string& job_id, std::string_view bytes);
 /// Fills `job`'s result from what RunJob gave (media type, extension, size, report, points,
 /// time) and marks it done (fraction 1, stage "done"); the state is the caller's to set.
 void SetResult(v1::Job& job, const JobOutput& out);

@@ -419,12 +419,14 @@ void JobManager::ExecuteLeased(LeasedJob leased) {
             run->job.spec(), [&](const std::string& cloud_id) { return LoadCloud(cloud_id); },
             progress);
         if (run->lost) throw Error(ErrorCode::kCancelled, "lease lost");
-        // Atomic (temp + rename): complete before any record names it. A second run of the same
+        // Durable and atomic (dir: temp + fsync + rename; large objects: one transaction):
+        // complete before any record names it. A second run of the same
         // job writes the same bytes.
-        WriteFileBytes(store_.ResultPath(id), out.bytes);
+        const std::string sha = detail::StoreResult(store_, id, out.bytes);
         std::lock_guard lock(mutex_);
         done = run->job;
         detail::SetResult(done, out);
+        done.mutable_result()->set_sha256(sha);
         done.set_state(v1::SUCCEEDED);
     } catch (...) {
         grpc::Status status = CurrentExceptionStatus();

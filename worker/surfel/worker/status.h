@@ -13,7 +13,8 @@ namespace surfel::worker {
 
 /// kInvalidArgument -> INVALID_ARGUMENT, kNotFound -> NOT_FOUND, kResourceExhausted ->
 /// RESOURCE_EXHAUSTED, kCancelled -> CANCELLED, kDeadlineExceeded -> DEADLINE_EXCEEDED,
-/// kUnavailable -> UNAVAILABLE, kFailedPrecondition -> FAILED_PRECONDITION, kInternal -> INTERNAL.
+/// kUnavailable -> UNAVAILABLE, kFailedPrecondition -> FAILED_PRECONDITION, kInternal -> INTERNAL,
+/// kDataLoss -> DATA_LOSS.
 grpc::StatusCode ToStatusCode(ErrorCode code);
 /// The inverse, for a client that reports a failed job as a core error (codes with no core
 /// counterpart become kInternal).

@@ -16,6 +16,7 @@ namespace fs = std::filesystem;
 // ---- the interface's shared part: the blob directory
 
 Store::Store(const std::string& data_dir) : data_dir_(data_dir) {
+    if (data_dir.empty()) return;
     std::error_code ec;
     for (const char* sub : {"", "/uploads", "/clouds", "/results"}) {
         fs::create_directories(data_dir + sub, ec);
@@ -23,6 +24,7 @@ Store::Store(const std::string& data_dir) : data_dir_(data_dir) {
             throw Error(ErrorCode::kInvalidArgument,
                         "data dir " + data_dir + sub + ": " + ec.message());
     }
+    blobs_ = std::make_unique<DirBlobStore>(data_dir);
 }
 
 Store::~Store() = default;
@@ -36,14 +38,14 @@ std::string Store::UploadPath(const std::string& id) const {
 
 bool Store::DeleteCloud(const std::string& id) {
     const bool existed = DeleteCloudRecord(id);
-    std::error_code ec;
-    fs::remove(CloudPath(id), ec);
+    if (blobs_) blobs_->Remove(CloudBlobKey(id));
     return existed;
 }
 
 // ---- the factory
 
-std::unique_ptr<Store> OpenStore(const std::string& url_or_dir, const std::string& data_dir) {
+namespace {
+std::unique_ptr<Store> OpenRecords(const std::string& url_or_dir, const std::string& data_dir) {
     if (url_or_dir.empty() || url_or_dir == "sqlite")
         return std::make_unique<SqliteStore>(data_dir);
     if (url_or_dir.starts_with("sqlite:"))
@@ -58,15 +60,32 @@ std::unique_ptr<Store> OpenStore(const std::string& url_or_dir, const std::strin
     const std::string blobs = data_dir.empty() ? url_or_dir : data_dir;
     return std::make_unique<SqliteStore>(url_or_dir + "/surfel.db", blobs);
 }
+}  // namespace
+
+std::unique_ptr<Store> OpenStore(const std::string& url_or_dir, const std::string& data_dir,
+                                 const std::string& blobs) {
+    const bool large_objects = blobs == "postgres";
+    const bool postgres =
+        url_or_dir.starts_with("postgres://") || url_or_dir.starts_with("postgresql://");
+    if (large_objects && !postgres)
+        throw Error(ErrorCode::kInvalidArgument,
+                    "--blobs postgres: needs --store postgres://... (the large objects live in "
+                    "that database); got --store " +
+                        (url_or_dir.empty() ? std::string("sqlite (the default)") : url_or_dir));
+    std::unique_ptr<Store> store = OpenRecords(url_or_dir, data_dir);
+    if (large_objects) store->SetBlobs(OpenLargeObjectBlobStore(url_or_dir));
+    if (!store->has_blobs())
+        throw Error(ErrorCode::kInvalidArgument,
+                    "--blobs: none given (dir:PATH, or postgres with a PostgreSQL --store)");
+    return store;
+}
 
 std::string BlobDirFromFlag(const std::string& blobs, const std::string& default_dir) {
     if (blobs.empty()) return default_dir;
     if (blobs.starts_with("dir:") && blobs.size() > 4) return blobs.substr(4);
-    if (blobs == "postgres")
-        throw Error(ErrorCode::kInvalidArgument,
-                    "--blobs postgres: large-object blobs are not built yet; use dir:PATH (a "
-                    "directory every server and worker mounts)");
-    throw Error(ErrorCode::kInvalidArgument, "--blobs " + blobs + ": expected dir:PATH");
+    if (blobs == "postgres") return default_dir;
+    throw Error(ErrorCode::kInvalidArgument,
+                "--blobs " + blobs + ": expected dir:PATH or postgres");
 }
 
 std::int64_t NowUnixMs() {

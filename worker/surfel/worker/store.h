@@ -8,12 +8,12 @@
 ///               see store_postgres.h
 ///
 /// Both keep one schema, created and upgraded at open by the versioned migrations of
-/// store_migrations.h (table `schema_migrations`). Blobs stay in a local data directory for both
-/// backends (a shared mount for several machines):
+/// store_migrations.h (table `schema_migrations`). Blobs are a BlobStore (blob_store.h): by
+/// default a directory (a shared mount for several machines), or PostgreSQL large objects:
 ///
-///   <data>/uploads/<id>.part    bytes of unfinished uploads (resumable)
-///   <data>/clouds/<sha256>      uploaded files, content-addressed
-///   <data>/results/<job id>     job results
+///   <data>/uploads/<id>.part    bytes of unfinished uploads (resumable; always local files)
+///   <data>/clouds/<sha256>      uploaded files, content-addressed   (dir backend)
+///   <data>/results/<job id>     job results                          (dir backend)
 ///
 /// Every method is safe to call from several threads. Errors are surfel::Error: kUnavailable
 /// when the database cannot be reached, kInternal for a record that does not parse or a
@@ -27,6 +27,7 @@
 #include <vector>
 
 #include "surfel/v1/surfel.pb.h"
+#include "surfel/worker/blob_store.h"
 #include "surfel/worker/sha256.h"
 
 namespace surfel::worker {
@@ -60,8 +61,15 @@ public:
     Store(const Store&) = delete;
     Store& operator=(const Store&) = delete;
 
-    /// The blob directory (uploads, clouds, results).
+    /// The blob directory (uploads, and clouds and results with the dir backend).
     const std::string& data_dir() const { return data_dir_; }
+    /// Where clouds and results live (a DirBlobStore over data_dir() unless SetBlobs chose
+    /// another). Keys: CloudBlobKey, ResultBlobKey.
+    BlobStore& blobs() const { return *blobs_; }
+    /// Replaces the blob store (OpenStore does it for `--blobs postgres`).
+    void SetBlobs(std::unique_ptr<BlobStore> blobs) { blobs_ = std::move(blobs); }
+    /// False for a store opened without a data dir whose blobs were not set yet.
+    bool has_blobs() const { return blobs_ != nullptr; }
     std::string CloudPath(const std::string& cloud_id) const;
     std::string ResultPath(const std::string& job_id) const;
     std::string UploadPath(const std::string& upload_id) const;
@@ -70,7 +78,7 @@ public:
     virtual std::optional<v1::Cloud> FindCloud(const std::string& id) const = 0;
     /// Records a cloud whose bytes are already at CloudPath(id); no-op when it exists.
     virtual void PutCloud(const v1::Cloud& cloud) = 0;
-    /// Removes the record and the bytes; false when unknown.
+    /// Removes the record and the blob; false when unknown.
     bool DeleteCloud(const std::string& id);
 
     // ---- jobs (stored as serialized surfel.v1.Job plus indexed columns)
@@ -132,7 +140,9 @@ public:
     virtual std::unique_ptr<Subscription> Listen(HintFn /*fn*/) { return nullptr; }
 
 protected:
-    /// Creates (when missing) the blob directories under `data_dir`. Throws kInvalidArgument.
+    /// Creates (when missing) the blob directories under `data_dir` and a DirBlobStore there;
+    /// nothing when `data_dir` is empty (a surfel-worker on large-object blobs). Throws
+    /// kInvalidArgument.
     explicit Store(const std::string& data_dir);
 
 private:
@@ -140,6 +150,7 @@ private:
     virtual bool DeleteCloudRecord(const std::string& id) = 0;
 
     std::string data_dir_;
+    std::unique_ptr<BlobStore> blobs_;
 };
 
 /// The embedded default: SQLite (WAL) in one file, blobs in a directory.
@@ -182,11 +193,16 @@ private:
 ///   "postgres://…", "postgresql://…" PostgreSQL (a libpq connection URI)
 ///   any other string without "://"   a directory: SQLite at <that dir>/surfel.db; the blobs
 ///                                    there too when `data_dir` is empty
+/// `blobs` is the `--blobs` flag: "" or "dir:PATH" keep the blobs in `data_dir` (the caller
+/// passes BlobDirFromFlag's answer there); "postgres" puts clouds and results into large objects
+/// of the store's PostgreSQL database (kInvalidArgument with any other store).
 /// Throws kInvalidArgument for another scheme, and whatever the backend's constructor throws.
-std::unique_ptr<Store> OpenStore(const std::string& url_or_dir, const std::string& data_dir);
+std::unique_ptr<Store> OpenStore(const std::string& url_or_dir, const std::string& data_dir,
+                                 const std::string& blobs = "");
 
-/// The blob directory named by a `--blobs` flag: "dir:PATH" -> PATH; "" -> `default_dir`.
-/// Throws kInvalidArgument for anything else ("postgres" large objects are not built yet).
+/// The blob directory named by a `--blobs` flag: "dir:PATH" -> PATH; "" or "postgres" ->
+/// `default_dir` (with large objects it holds only the local part files of uploads).
+/// Throws kInvalidArgument for anything else.
 std::string BlobDirFromFlag(const std::string& blobs, const std::string& default_dir);
 
 /// Milliseconds since the Unix epoch.

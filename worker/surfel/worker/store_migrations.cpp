@@ -12,6 +12,9 @@ namespace {
 // earlier leases expired.
 // Version 3 adds the cancel request of the shared queue: any server sets it, the leaseholder
 // (on another machine) stops the job.
+// Version 5 adds the index of large-object blobs (`--blobs postgres`, blob_store_postgres.cpp):
+// key ("clouds/<sha256>", "results/<job id>") -> large object oid, size, SHA-256. SQLite keeps
+// the same table, empty (it has no large objects), so that both dialects stay one schema.
 constexpr std::array kMigrations{
     Migration{1, "clouds and jobs",
               "CREATE TABLE IF NOT EXISTS clouds (id TEXT PRIMARY KEY, record BLOB NOT NULL, "
@@ -40,6 +43,11 @@ constexpr std::array kMigrations{
     Migration{3, "job cancel requests",
               "ALTER TABLE jobs ADD COLUMN cancel_requested INTEGER NOT NULL DEFAULT 0;",
               "ALTER TABLE jobs ADD COLUMN cancel_requested INTEGER NOT NULL DEFAULT 0;"},
+    Migration{5, "large-object blobs",
+              "CREATE TABLE IF NOT EXISTS blobs (key TEXT PRIMARY KEY, oid INTEGER NOT NULL, "
+              "size INTEGER NOT NULL, sha256 TEXT NOT NULL, created_ms INTEGER NOT NULL);",
+              "CREATE TABLE IF NOT EXISTS blobs (key TEXT PRIMARY KEY, oid OID NOT NULL, "
+              "size BIGINT NOT NULL, sha256 TEXT NOT NULL, created_ms BIGINT NOT NULL);"},
 };
 
 }  // namespace
