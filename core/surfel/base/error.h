@@ -21,6 +21,7 @@ enum class ErrorCode {
     kUnavailable,        ///< The service is shutting down or cannot take work now; retry later.
     kFailedPrecondition, ///< The request does not fit the current state (a result before its job ended).
     kInternal,           ///< A bug: an invariant of the library did not hold.
+    kUnauthenticated,    ///< The caller presented no valid credentials (the service's auth).
 };
 
 /// The name of a code, e.g. "InvalidArgument".

@@ -32,6 +32,7 @@ TEST(Status, EveryErrorCodeMapsToItsGrpcCode) {
         {ErrorCode::kUnavailable, grpc::StatusCode::UNAVAILABLE},
         {ErrorCode::kFailedPrecondition, grpc::StatusCode::FAILED_PRECONDITION},
         {ErrorCode::kInternal, grpc::StatusCode::INTERNAL},
+        {ErrorCode::kUnauthenticated, grpc::StatusCode::UNAUTHENTICATED},
     };
     for (const auto& [code, grpc_code] : table) {
         EXPECT_EQ(ToStatusCode(code), grpc_code) << ErrorCodeName(code);

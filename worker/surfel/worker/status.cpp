@@ -14,6 +14,7 @@ grpc::StatusCode ToStatusCode(ErrorCode code) {
         case ErrorCode::kUnavailable: return grpc::StatusCode::UNAVAILABLE;
         case ErrorCode::kFailedPrecondition: return grpc::StatusCode::FAILED_PRECONDITION;
         case ErrorCode::kInternal: return grpc::StatusCode::INTERNAL;
+        case ErrorCode::kUnauthenticated: return grpc::StatusCode::UNAUTHENTICATED;
     }
     return grpc::StatusCode::INTERNAL;
 }
@@ -21,7 +22,7 @@ grpc::StatusCode ToStatusCode(ErrorCode code) {
 ErrorCode FromStatusCode(int code) {
     for (ErrorCode c : {ErrorCode::kInvalidArgument, ErrorCode::kNotFound, ErrorCode::kResourceExhausted,
                         ErrorCode::kCancelled, ErrorCode::kDeadlineExceeded, ErrorCode::kUnavailable,
-                        ErrorCode::kFailedPrecondition})
+                        ErrorCode::kFailedPrecondition, ErrorCode::kUnauthenticated})
         if (static_cast<int>(ToStatusCode(c)) == code) return c;
     return ErrorCode::kInternal;
 }

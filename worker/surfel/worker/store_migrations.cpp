@@ -12,6 +12,9 @@ namespace {
 // earlier leases expired.
 // Version 3 adds the cancel request of the shared queue: any server sets it, the leaseholder
 // (on another machine) stops the job.
+// Version 4 adds tenants (docs/security.md): who owns which cloud (the bytes are shared, each
+// tenant owns its own record of them; rows before it belong to the default tenant ""), and the
+// tenant of each job (a copy of Job.tenant in the record, for listing).
 constexpr std::array kMigrations{
     Migration{1, "clouds and jobs",
               "CREATE TABLE IF NOT EXISTS clouds (id TEXT PRIMARY KEY, record BLOB NOT NULL, "
@@ -40,6 +43,17 @@ constexpr std::array kMigrations{
     Migration{3, "job cancel requests",
               "ALTER TABLE jobs ADD COLUMN cancel_requested INTEGER NOT NULL DEFAULT 0;",
               "ALTER TABLE jobs ADD COLUMN cancel_requested INTEGER NOT NULL DEFAULT 0;"},
+    Migration{4, "tenants of clouds and jobs",
+              "CREATE TABLE cloud_owners (tenant TEXT NOT NULL, cloud_id TEXT NOT NULL, "
+              "PRIMARY KEY (tenant, cloud_id));"
+              "INSERT INTO cloud_owners (tenant, cloud_id) SELECT '', id FROM clouds;"
+              "ALTER TABLE jobs ADD COLUMN tenant TEXT NOT NULL DEFAULT '';"
+              "CREATE INDEX jobs_tenant_seq ON jobs(tenant, seq);",
+              "CREATE TABLE cloud_owners (tenant TEXT NOT NULL, cloud_id TEXT NOT NULL, "
+              "PRIMARY KEY (tenant, cloud_id));"
+              "INSERT INTO cloud_owners (tenant, cloud_id) SELECT '', id FROM clouds;"
+              "ALTER TABLE jobs ADD COLUMN tenant TEXT NOT NULL DEFAULT '';"
+              "CREATE INDEX jobs_tenant_seq ON jobs(tenant, seq);"},
 };
 
 }  // namespace
