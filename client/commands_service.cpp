@@ -11,11 +11,13 @@ namespace {
 
 struct ServerArgs {
     std::string server;
+    ConnectFlags connect;
     CommonFlags flags;
 };
 
 void AddServer(CLI::App* sub, ServerArgs* a) {
     sub->add_option("--server", a->server, "surfel-server at host:port")->envname("SURFEL_SERVER")->required();
+    AddConnectFlags(sub, &a->connect);
     AddCommonFlags(sub, &a->flags);
 }
 
@@ -68,7 +70,7 @@ void RegisterServiceCommands(CLI::App& app) {
                     "connection continues where the server stopped; a file it already has is not sent.\n"
                     "Example:\n  surfel upload bunny.ply --server localhost:50051 --json");
         sub->callback([a] {
-            client::ServiceClient c(a->server);
+            client::ServiceClient c(a->server, 30.0, a->connect.options);
             Stopwatch watch;
             const v1::Cloud cloud = c.UploadFile(a->input, ByteProgressBar("upload", a->flags));
             const double ms = watch.ElapsedMs();
@@ -96,7 +98,7 @@ void RegisterServiceCommands(CLI::App& app) {
         AddServer(sub, a.get());
         sub->footer("Example:\n  surfel jobs --server localhost:50051 --state running");
         sub->callback([a] {
-            client::ServiceClient c(a->server);
+            client::ServiceClient c(a->server, 30.0, a->connect.options);
             const v1::JobState state = a->state.empty() ? v1::JOB_STATE_UNSPECIFIED
                                                         : ParseProtoEnum("--state", a->state, &v1::JobState_Parse);
             const auto jobs = c.ListJobs(a->limit, state);
@@ -127,7 +129,7 @@ void RegisterServiceCommands(CLI::App& app) {
         sub->add_option("id", a->id, "Job id")->required();
         AddServer(sub, a.get());
         sub->callback([a] {
-            client::ServiceClient c(a->server);
+            client::ServiceClient c(a->server, 30.0, a->connect.options);
             PrintReport(JobJson(c.GetJob(a->id)), a->flags);
         });
     }
@@ -142,7 +144,7 @@ void RegisterServiceCommands(CLI::App& app) {
         sub->footer("A running job stops within 100 ms and ends CANCELLED.\nExample:\n"
                     "  surfel cancel j0123456789abcdef --server localhost:50051");
         sub->callback([a] {
-            client::ServiceClient c(a->server);
+            client::ServiceClient c(a->server, 30.0, a->connect.options);
             PrintReport(JobJson(c.Cancel(a->id)), a->flags);
         });
     }
@@ -156,7 +158,7 @@ void RegisterServiceCommands(CLI::App& app) {
         sub->add_option("-o,--output", a->output, "Output file")->required();
         AddServer(sub, a.get());
         sub->callback([a] {
-            client::ServiceClient c(a->server);
+            client::ServiceClient c(a->server, 30.0, a->connect.options);
             const std::string bytes = c.Download(a->id, ByteProgressBar("download", a->flags));
             WriteFileBytes(a->output, bytes);
             PrintReport({{"job_id", a->id}, {"output", a->output}, {"size_bytes", bytes.size()}}, a->flags);

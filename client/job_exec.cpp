@@ -13,7 +13,22 @@ client::ByteProgress ByteProgressBar(const std::string& label, const CommonFlags
     return [bar](std::uint64_t done, std::uint64_t total) { bar(total ? double(done) / double(total) : 1.0); };
 }
 
+void AddConnectFlags(CLI::App* sub, ConnectFlags* flags) {
+    sub->add_option("--token", flags->options.token,
+                    "Bearer token for a server started with --auth-tokens")
+        ->envname("SURFEL_TOKEN");
+    sub->add_option("--ca", flags->options.ca_file,
+                    "Connect with TLS, trusting the CA in this PEM file (the server's --tls-cert issuer)")
+        ->check(CLI::ExistingFile);
+    sub->add_flag("--tls", flags->options.tls, "Connect with TLS, trusting the system's root certificates");
+    sub->add_option("--cert", flags->options.cert_file, "Mutual TLS: this client's certificate (PEM)")
+        ->check(CLI::ExistingFile);
+    sub->add_option("--key", flags->options.key_file, "Mutual TLS: the key of --cert (PEM)")
+        ->check(CLI::ExistingFile);
+}
+
 void AddJobFlags(CLI::App* sub, JobFlags* flags) {
+    AddConnectFlags(sub, &flags->connect);
     sub->add_option("--server", flags->server, "Run on a surfel-server at host:port instead of in-process")
         ->envname("SURFEL_SERVER");
     sub->add_option("--timeout", flags->timeout_s, "Fail the job with DEADLINE_EXCEEDED after this many seconds")
@@ -47,7 +62,7 @@ nlohmann::json ExecuteJob(v1::JobSpec spec, const std::vector<std::string>& inpu
         return report;
     }
 
-    client::ServiceClient client(job_flags.server);
+    client::ServiceClient client(job_flags.server, 30.0, job_flags.connect.options);
     std::vector<std::string> cloud_ids;
     for (std::size_t i = 0; i < inputs.size(); ++i) {
         cloud_ids.push_back(client.UploadFile(inputs[i], ByteProgressBar("upload", flags)).id());

@@ -15,9 +15,19 @@
 
 namespace surfel::cli {
 
+/// How to reach a server with auth or TLS (docs/security.md): --token (or SURFEL_TOKEN),
+/// --ca FILE (TLS, this CA), --tls (TLS, system roots), --cert/--key (mutual TLS).
+struct ConnectFlags {
+    client::ConnectOptions options;
+};
+
+/// Adds --token, --ca, --tls, --cert and --key.
+void AddConnectFlags(CLI::App* sub, ConnectFlags* flags);
+
 /// Options every job subcommand shares beyond --json/--quiet.
 struct JobFlags {
     std::string server;     ///< host:port; empty = in-process
+    ConnectFlags connect;   ///< --token, --ca, ... for --server
     double timeout_s = 0;   ///< > 0: the job fails with DEADLINE_EXCEEDED past it
     bool detach = false;    ///< --server only: submit and print the job id without waiting
 };

@@ -3,6 +3,7 @@
 #include <chrono>
 #include <filesystem>
 #include <fstream>
+#include <sstream>
 
 #include "surfel/worker/sha256.h"
 
@@ -50,21 +51,48 @@ std::string FileSha256(const std::string& path) {
 
 // One unary call with the client's deadline: the status, and the response in *resp.
 template <typename Req, typename Resp, typename Method>
-grpc::Status CallUnary(v1::Surfel::Stub* stub, Method method, const Req& req, Resp* resp, double timeout_s) {
+grpc::Status CallUnary(v1::Surfel::Stub* stub, Method method, const Req& req, Resp* resp, double timeout_s,
+                       const std::string& token) {
     grpc::ClientContext ctx;
+    if (!token.empty()) ctx.AddMetadata("authorization", "Bearer " + token);
     ctx.set_deadline(std::chrono::system_clock::now() + std::chrono::milliseconds(static_cast<std::int64_t>(timeout_s * 1000)));
     return (stub->*method)(&ctx, req, resp);
 }
 
 }  // namespace
 
+void ServiceClient::Authorize(grpc::ClientContext& ctx) const {
+    if (!token_.empty()) ctx.AddMetadata("authorization", "Bearer " + token_);
+}
+
 RpcError::RpcError(const grpc::Status& status, const std::string& what)
     : std::runtime_error(what + ": " + CodeName(status.error_code()) + ": " + status.error_message()), status_(status) {}
 
-ServiceClient::ServiceClient(const std::string& target, double timeout_s) : target_(target), timeout_s_(timeout_s) {
+static std::string ReadPemFile(const std::string& path, const char* what) {
+    std::ifstream in(path, std::ios::binary);
+    if (!in) throw std::runtime_error(std::string(what) + ": cannot read " + path);
+    std::stringstream s;
+    s << in.rdbuf();
+    return s.str();
+}
+
+ServiceClient::ServiceClient(const std::string& target, double timeout_s, const ConnectOptions& options)
+    : target_(target), timeout_s_(timeout_s), token_(options.token) {
     grpc::ChannelArguments args;
     args.SetMaxReceiveMessageSize(16 << 20);
-    channel_ = grpc::CreateCustomChannel(target, grpc::InsecureChannelCredentials(), args);
+    std::shared_ptr<grpc::ChannelCredentials> credentials = grpc::InsecureChannelCredentials();
+    if (options.tls || !options.ca_file.empty() || !options.cert_file.empty() || !options.key_file.empty()) {
+        if (options.cert_file.empty() != options.key_file.empty())
+            throw std::runtime_error("--cert and --key go together");
+        grpc::SslCredentialsOptions ssl;
+        if (!options.ca_file.empty()) ssl.pem_root_certs = ReadPemFile(options.ca_file, "--ca");
+        if (!options.cert_file.empty()) {
+            ssl.pem_cert_chain = ReadPemFile(options.cert_file, "--cert");
+            ssl.pem_private_key = ReadPemFile(options.key_file, "--key");
+        }
+        credentials = grpc::SslCredentials(ssl);
+    }
+    channel_ = grpc::CreateCustomChannel(target, credentials, args);
     stub_ = v1::Surfel::NewStub(channel_);
 }
 
@@ -72,7 +100,7 @@ v1::Cloud ServiceClient::GetCloud(const std::string& id) {
     v1::GetCloudRequest req;
     req.set_cloud_id(id);
     v1::Cloud c;
-    Check(CallUnary(stub_.get(), &v1::Surfel::Stub::GetCloud, req, &c, timeout_s_), "GetCloud");
+    Check(CallUnary(stub_.get(), &v1::Surfel::Stub::GetCloud, req, &c, timeout_s_, token_), "GetCloud");
     return c;
 }
 
@@ -83,7 +111,7 @@ v1::Cloud ServiceClient::UploadFile(const std::string& path, const ByteProgress&
         v1::GetCloudRequest req;
         req.set_cloud_id(sha);
         v1::Cloud c;
-        if (CallUnary(stub_.get(), &v1::Surfel::Stub::GetCloud, req, &c, timeout_s_).ok()) {
+        if (CallUnary(stub_.get(), &v1::Surfel::Stub::GetCloud, req, &c, timeout_s_, token_).ok()) {
             c.set_deduplicated(true);
             if (progress) progress(total, total);
             return c;
@@ -94,13 +122,14 @@ v1::Cloud ServiceClient::UploadFile(const std::string& path, const ByteProgress&
         v1::QueryUploadRequest req;
         req.set_upload_id(sha);
         v1::QueryUploadResponse resp;
-        Check(CallUnary(stub_.get(), &v1::Surfel::Stub::QueryUpload, req, &resp, timeout_s_), "QueryUpload");
+        Check(CallUnary(stub_.get(), &v1::Surfel::Stub::QueryUpload, req, &resp, timeout_s_, token_), "QueryUpload");
         offset = static_cast<std::uint64_t>(resp.committed_size());
         if (offset > total) offset = 0;  // a different file under this id cannot happen (same hash)
     }
     std::ifstream in(path, std::ios::binary);
     in.seekg(static_cast<std::streamoff>(offset));
     grpc::ClientContext ctx;  // no deadline: large files take their time
+    Authorize(ctx);
     v1::Cloud cloud;
     auto writer = stub_->Upload(&ctx, &cloud);
     v1::UploadRequest req;
@@ -131,7 +160,7 @@ v1::Job ServiceClient::Submit(const v1::JobSpec& spec) {
     v1::SubmitRequest req;
     *req.mutable_spec() = spec;
     v1::Job job;
-    Check(CallUnary(stub_.get(), &v1::Surfel::Stub::Submit, req, &job, timeout_s_), "Submit");
+    Check(CallUnary(stub_.get(), &v1::Surfel::Stub::Submit, req, &job, timeout_s_, token_), "Submit");
     return job;
 }
 
@@ -139,6 +168,7 @@ WatchOutcome ServiceClient::Watch(const std::string& job_id, bool include_result
                                   const std::function<void(const std::string&, double)>& on_running,
                                   const std::function<void(std::uint32_t)>& on_queued, const ByteProgress& on_bytes) {
     grpc::ClientContext ctx;
+    Authorize(ctx);
     v1::WatchRequest req;
     req.set_job_id(job_id);
     req.set_include_result(include_result);
@@ -178,6 +208,7 @@ WatchOutcome ServiceClient::Watch(const std::string& job_id, bool include_result
 
 std::string ServiceClient::Download(const std::string& job_id, const ByteProgress& progress) {
     grpc::ClientContext ctx;
+    Authorize(ctx);
     v1::DownloadRequest req;
     req.set_job_id(job_id);
     auto reader = stub_->Download(&ctx, req);
@@ -195,7 +226,7 @@ v1::Job ServiceClient::Cancel(const std::string& job_id) {
     v1::CancelRequest req;
     req.set_job_id(job_id);
     v1::Job job;
-    Check(CallUnary(stub_.get(), &v1::Surfel::Stub::Cancel, req, &job, timeout_s_), "Cancel");
+    Check(CallUnary(stub_.get(), &v1::Surfel::Stub::Cancel, req, &job, timeout_s_, token_), "Cancel");
     return job;
 }
 
@@ -203,7 +234,7 @@ v1::Job ServiceClient::GetJob(const std::string& job_id) {
     v1::GetJobRequest req;
     req.set_job_id(job_id);
     v1::Job job;
-    Check(CallUnary(stub_.get(), &v1::Surfel::Stub::GetJob, req, &job, timeout_s_), "GetJob");
+    Check(CallUnary(stub_.get(), &v1::Surfel::Stub::GetJob, req, &job, timeout_s_, token_), "GetJob");
     return job;
 }
 
@@ -212,7 +243,7 @@ std::vector<v1::Job> ServiceClient::ListJobs(std::uint32_t limit, v1::JobState s
     req.set_limit(limit);
     req.set_state(state);
     v1::ListJobsResponse resp;
-    Check(CallUnary(stub_.get(), &v1::Surfel::Stub::ListJobs, req, &resp, timeout_s_), "ListJobs");
+    Check(CallUnary(stub_.get(), &v1::Surfel::Stub::ListJobs, req, &resp, timeout_s_, token_), "ListJobs");
     return {resp.jobs().begin(), resp.jobs().end()};
 }
 
@@ -220,7 +251,7 @@ bool ServiceClient::DeleteCloud(const std::string& id) {
     v1::DeleteCloudRequest req;
     req.set_cloud_id(id);
     v1::DeleteCloudResponse resp;
-    Check(CallUnary(stub_.get(), &v1::Surfel::Stub::DeleteCloud, req, &resp, timeout_s_), "DeleteCloud");
+    Check(CallUnary(stub_.get(), &v1::Surfel::Stub::DeleteCloud, req, &resp, timeout_s_, token_), "DeleteCloud");
     return resp.deleted();
 }
 

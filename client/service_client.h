@@ -37,10 +37,23 @@ struct WatchOutcome {
     std::string bytes;      ///< include_result
 };
 
+/// How to reach a server that wants credentials (docs/security.md).
+struct ConnectOptions {
+    /// Sent as `authorization: Bearer <token>` on every call; empty = none.
+    std::string token;
+    /// TLS with the system's root certificates (or `ca_file`'s).
+    bool tls = false;
+    /// PEM file of the CA that signed the server's certificate; implies TLS.
+    std::string ca_file;
+    /// Mutual TLS: this client's certificate chain and key (PEM files); imply TLS.
+    std::string cert_file, key_file;
+};
+
 class ServiceClient {
 public:
-    /// `target` is host:port. Connects lazily; `timeout_s` bounds unary calls.
-    explicit ServiceClient(const std::string& target, double timeout_s = 30.0);
+    /// `target` is host:port. Connects lazily; `timeout_s` bounds unary calls. Throws
+    /// std::runtime_error naming a PEM file of `options` that cannot be read.
+    explicit ServiceClient(const std::string& target, double timeout_s = 30.0, const ConnectOptions& options = {});
 
     /// Uploads a file (chunks of `chunk` bytes). The upload id is the file's SHA-256, so a
     /// broken upload resumes where the server's committed size ends, and a file the server
@@ -62,8 +75,11 @@ public:
     const std::string& target() const { return target_; }
 
 private:
+    void Authorize(grpc::ClientContext& ctx) const;
+
     std::string target_;
     double timeout_s_;
+    std::string token_;
     std::shared_ptr<grpc::Channel> channel_;
     std::unique_ptr<v1::Surfel::Stub> stub_;
 };

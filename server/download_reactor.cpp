@@ -16,10 +16,11 @@ using worker::CurrentExceptionStatus;
 // bounded read, never the whole result) and starts its write, or finishes after the last.
 class DownloadReactor final : public grpc::ServerWriteReactor<v1::DataChunk> {
 public:
-    DownloadReactor(SurfelService& service, const v1::DownloadRequest& request) : service_(service) {
+    DownloadReactor(SurfelService& service, const Caller& caller, const v1::DownloadRequest& request)
+        : service_(service) {
         bool open = false;
         try {
-            const ResultFile r = service_.ops().Result(request.job_id());
+            const ResultFile r = service_.ops().Result(caller, request.job_id());
             open = reader_.Open(service_.store().blobs(), r.job);
         } catch (...) {
             Finish(CurrentExceptionStatus());
@@ -66,9 +67,9 @@ private:
 
 }  // namespace
 
-grpc::ServerWriteReactor<v1::DataChunk>* NewDownloadReactor(SurfelService& service,
+grpc::ServerWriteReactor<v1::DataChunk>* NewDownloadReactor(SurfelService& service, const Caller& caller,
                                                             const v1::DownloadRequest& request) {
-    return new DownloadReactor(service, request);
+    return new DownloadReactor(service, caller, request);
 }
 
 }  // namespace surfel::server

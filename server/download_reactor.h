@@ -7,7 +7,7 @@
 namespace surfel::server {
 
 /// A reactor for one Download call; it deletes itself in OnDone.
-grpc::ServerWriteReactor<v1::DataChunk>* NewDownloadReactor(SurfelService& service,
+grpc::ServerWriteReactor<v1::DataChunk>* NewDownloadReactor(SurfelService& service, const Caller& caller,
                                                             const v1::DownloadRequest& request);
 
 }  // namespace surfel::server

@@ -105,6 +105,8 @@ void SendStatus(Response& res, grpc::StatusCode code, const std::string& message
     fields["message"].set_string_value(message);
     fields["details"].mutable_list_value();
     res.status = http_status ? http_status : HttpStatusFromCode(static_cast<int>(code));
+    if (code == grpc::StatusCode::UNAUTHENTICATED)
+        res.set_header("WWW-Authenticate", "Bearer realm=\"surfel\"");  // RFC 6750
     pbu::JsonPrintOptions options;
     std::string out;
     (void)pbu::MessageToJsonString(body, &out, options);
@@ -211,7 +213,55 @@ struct HttpFront::Impl {
     Operations& ops;
     HttpOptions options;
     JobEventLogs logs;
-    httplib::Server server;
+    std::unique_ptr<httplib::Server> server_ptr = MakeServer(options);
+    httplib::Server& server = *server_ptr;
+
+    // HTTPS when a certificate is given; mutual TLS with a client CA (cpp-httplib then sets
+    // SSL_VERIFY_PEER | SSL_VERIFY_FAIL_IF_NO_PEER_CERT).
+    static std::unique_ptr<httplib::Server> MakeServer(const HttpOptions& o) {
+        if (o.tls_cert.empty() != o.tls_key.empty())
+            throw Error(ErrorCode::kInvalidArgument, "--tls-cert and --tls-key go together");
+        if (o.tls_cert.empty()) {
+            if (!o.tls_client_ca.empty())
+                throw Error(ErrorCode::kInvalidArgument, "--tls-client-ca needs --tls-cert and --tls-key");
+            return std::make_unique<httplib::Server>();
+        }
+        auto s = std::make_unique<httplib::SSLServer>(
+            o.tls_cert.c_str(), o.tls_key.c_str(),
+            o.tls_client_ca.empty() ? nullptr : o.tls_client_ca.c_str());
+        if (!s->is_valid())
+            throw Error(ErrorCode::kInvalidArgument,
+                        "HTTP TLS: cannot load certificate " + o.tls_cert + " / key " + o.tls_key +
+                            (o.tls_client_ca.empty() ? "" : " / client CA " + o.tls_client_ca));
+        return s;
+    }
+
+    // The caller of an API request (its Authorization header); throws kUnauthenticated.
+    Caller Who(const Request& req) const {
+        return ops.auth().Authenticate(req.get_header_value("Authorization"));
+    }
+
+    // The caller of an event stream: the Authorization header, or a signed URL
+    // (?exp=UNIX_MS&sig=HEX from POST /v1/jobs/{id}:eventsUrl) since EventSource sends no headers.
+    Caller EventsCaller(const Request& req, const std::string& job_id) const {
+        if (!ops.auth().enabled() || !req.has_param("sig")) return Who(req);
+        const auto refuse = [] {
+            return Error(ErrorCode::kUnauthenticated,
+                         "the signed events URL is invalid or expired: sign a new one "
+                         "(POST /v1/jobs/{id}:eventsUrl)");
+        };
+        std::int64_t exp = 0;
+        try {
+            exp = std::stoll(req.get_param_value("exp"));
+        } catch (const std::exception&) {
+            throw refuse();
+        }
+        const std::optional<v1::Job> job = ops.jobs().Get(job_id);
+        if (!job || !ops.url_signer().Verify(job_id, job->tenant(), exp, req.get_param_value("sig"),
+                                             worker::NowUnixMs()))
+            throw refuse();
+        return Caller{job->tenant(), true};
+    }
     std::thread listener;
     int port = 0;
     std::atomic<bool> stopped{false};
@@ -245,14 +295,14 @@ struct HttpFront::Impl {
         res.set_header("Access-Control-Allow-Methods", "GET, POST, DELETE, OPTIONS");
         const std::string asked = req.get_header_value("Access-Control-Request-Headers");
         res.set_header("Access-Control-Allow-Headers",
-                       asked.empty() ? "Content-Type, Range, Last-Event-ID" : asked);
+                       asked.empty() ? "Content-Type, Range, Last-Event-ID, Authorization" : asked);
         res.set_header("Access-Control-Max-Age", "600");
         return httplib::Server::HandlerResponse::Handled;
     }
 
     // POST /v1/clouds?filename=NAME — the file as the raw body.
     void Upload(const Request& req, Response& res, const ContentReader& reader) {
-        UploadSession session(ops, RandomUploadId(), req.get_param_value("filename"));
+        UploadSession session(ops, Who(req), RandomUploadId(), req.get_param_value("filename"));
         bool done = false;
         try {
             if (req.has_header("Content-Length")) {
@@ -305,6 +355,8 @@ struct HttpFront::Impl {
 
     // GET /v1/jobs/{id}/events — Server-Sent Events.
     void Events(const Request& req, Response& res, const std::string& job_id) {
+        const Caller caller = EventsCaller(req, job_id);
+        if (caller.scoped) ops.GetJob(caller, job_id);  // NOT_FOUND for another tenant's job
         std::shared_ptr<JobEventLog> log = logs.Open(job_id);
         if (!log) throw Error(ErrorCode::kNotFound, "job " + job_id + " not found");
         std::uint64_t after = 0;
@@ -348,9 +400,24 @@ struct HttpFront::Impl {
             });
     }
 
+    // POST /v1/jobs/{id}:eventsUrl -> {"url": "/v1/jobs/{id}/events?exp=..&sig=..", "expiresUnixMs"}
+    void EventsUrl(const Request& req, Response& res, const std::string& job_id) {
+        const Caller caller = Who(req);
+        const v1::Job job = ops.GetJob(caller, job_id);
+        std::string url = "/v1/jobs/" + job_id + "/events";
+        const std::int64_t exp = worker::NowUnixMs() + options.events_url_ttl_ms;
+        if (ops.auth().enabled())
+            url += "?exp=" + std::to_string(exp) +
+                   "&sig=" + ops.url_signer().Sign(job_id, job.tenant(), exp);
+        google::protobuf::Struct body;
+        (*body.mutable_fields())["url"].set_string_value(url);
+        (*body.mutable_fields())["expiresUnixMs"].set_string_value(std::to_string(exp));
+        SendMessage(res, body);
+    }
+
     // GET /v1/jobs/{id}/result — the bytes, with Range.
     void Result(const Request& req, Response& res, const std::string& job_id) {
-        const ResultFile r = ops.Result(job_id);
+        const ResultFile r = ops.Result(Who(req), job_id);
         // The Request is httplib's own, mutable object; only its parsed ranges are fitted.
         auto& ranges = const_cast<Request&>(req).ranges;
         if (!ranges.empty() && !FitRanges(ranges, r.size)) {
@@ -412,11 +479,11 @@ struct HttpFront::Impl {
                    Guard(req, res, [&] { Upload(req, res, reader); });
                });
         s.Get(R"(/v1/clouds/([^/]+))", [this](const Request& req, Response& res) {
-            Guard(req, res, [&] { SendMessage(res, ops.GetCloud(req.matches[1])); });
+            Guard(req, res, [&] { SendMessage(res, ops.GetCloud(Who(req), req.matches[1])); });
         });
         s.Delete(R"(/v1/clouds/([^/]+))", [this](const Request& req, Response& res) {
             Guard(req, res, [&] {
-                ops.DeleteCloud(req.matches[1]);
+                ops.DeleteCloud(Who(req), req.matches[1]);
                 v1::DeleteCloudResponse r;
                 r.set_deleted(true);
                 SendMessage(res, r);
@@ -424,13 +491,15 @@ struct HttpFront::Impl {
         });
         s.Post("/v1/jobs", [this](const Request& req, Response& res, const ContentReader& reader) {
             Guard(req, res, [&] {
+                const Caller caller = Who(req);
                 const auto spec = ParseJson<v1::JobSpec>(
                     ReadSmallBody(reader, options.max_spec_bytes, "JobSpec"), "JobSpec");
-                SendMessage(res, ops.Submit(spec));
+                SendMessage(res, ops.Submit(caller, spec));
             });
         });
         s.Get("/v1/jobs", [this](const Request& req, Response& res) {
             Guard(req, res, [&] {
+                const Caller caller = Who(req);
                 std::uint32_t limit = 0;
                 if (req.has_param("limit")) {
                     const std::uint64_t l = ParseUint(req.get_param_value("limit"), "limit");
@@ -443,15 +512,20 @@ struct HttpFront::Impl {
                                 "state: '" + req.get_param_value("state") +
                                     "' is not a JobState (QUEUED, RUNNING, ...)");
                 v1::ListJobsResponse r;
-                for (v1::Job& j : ops.ListJobs(limit, state)) *r.add_jobs() = std::move(j);
+                for (v1::Job& j : ops.ListJobs(caller, limit, state)) *r.add_jobs() = std::move(j);
                 SendMessage(res, r);
             });
         });
         s.Get(R"(/v1/jobs/([^/:]+))", [this](const Request& req, Response& res) {
-            Guard(req, res, [&] { SendMessage(res, ops.GetJob(req.matches[1])); });
+            Guard(req, res, [&] { SendMessage(res, ops.GetJob(Who(req), req.matches[1])); });
         });
         s.Post(R"(/v1/jobs/([^/:]+):cancel)", [this](const Request& req, Response& res) {
-            Guard(req, res, [&] { SendMessage(res, ops.Cancel(req.matches[1])); });
+            Guard(req, res, [&] { SendMessage(res, ops.Cancel(Who(req), req.matches[1])); });
+        });
+        // A short-lived URL of the job's event stream for EventSource, which cannot send an
+        // Authorization header (docs/security.md). Without auth the plain path is returned.
+        s.Post(R"(/v1/jobs/([^/:]+):eventsUrl)", [this](const Request& req, Response& res) {
+            Guard(req, res, [&] { EventsUrl(req, res, req.matches[1]); });
         });
         s.Get(R"(/v1/jobs/([^/:]+)/events)", [this](const Request& req, Response& res) {
             Guard(req, res, [&] { Events(req, res, req.matches[1]); });

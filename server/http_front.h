@@ -26,6 +26,12 @@ struct HttpOptions {
     std::size_t threads = 16;              ///< connection threads (each SSE stream holds one)
     int sse_keepalive_ms = 15000;          ///< a comment line on an idle event stream this often
     std::size_t max_spec_bytes = 1 << 20;  ///< largest JobSpec body
+    /// HTTPS: the server's certificate chain and key (PEM files); both or neither.
+    std::string tls_cert, tls_key;
+    /// Mutual TLS: clients must present a certificate signed by this CA (PEM); needs tls_cert.
+    std::string tls_client_ca;
+    /// Lifetime of a signed event-stream URL (POST /v1/jobs/{id}:eventsUrl), ms.
+    std::int64_t events_url_ttl_ms = 60'000;
 };
 
 class HttpFront {
@@ -38,7 +44,7 @@ class HttpFront {
     HttpFront& operator=(const HttpFront&) = delete;
 
     /// Binds and starts serving on a thread of its own; throws Error(kUnavailable) when the
-    /// address cannot be bound.
+    /// address cannot be bound, Error(kInvalidArgument) when the TLS files do not load.
     void Start();
     /// The bound port (after Start).
     int port() const;

@@ -5,6 +5,8 @@
 #include <filesystem>
 
 #include "surfel/base/error.h"
+#include "surfel/worker/job_kind.h"
+#include "surfel/worker/sha256.h"
 #include "upload_session.h"
 
 namespace surfel::server {
@@ -14,51 +16,82 @@ Operations::Operations(worker::Store& store, worker::JobManager& jobs, Metrics& 
                        Executor& ingest, ServiceLimits limits)
     : store_(store), jobs_(jobs), metrics_(metrics), ingest_(ingest), limits_(limits) {}
 
-std::int64_t Operations::CommittedUploadBytes(const std::string& upload_id) const {
+std::string Operations::ScopedUploadId(const Caller& caller, const std::string& upload_id) {
+    if (!caller.scoped) return upload_id;
+    std::string scoped = "t";
+    scoped.append(worker::Sha256Hex("tenant\n" + caller.tenant), 0, 16);
+    scoped.push_back('_');
+    scoped.append(upload_id);
+    return scoped;
+}
+
+std::int64_t Operations::CommittedUploadBytes(const Caller& caller,
+                                              const std::string& upload_id) const {
     CheckUploadId(upload_id);
-    const std::string path = store_.UploadPath(upload_id);
+    const std::string path = store_.UploadPath(ScopedUploadId(caller, upload_id));
     std::error_code ec;
     return fs::exists(path, ec) ? static_cast<std::int64_t>(fs::file_size(path, ec)) : 0;
 }
 
-v1::Cloud Operations::GetCloud(const std::string& cloud_id) const {
-    auto c = store_.FindCloud(cloud_id);
+v1::Cloud Operations::GetCloud(const Caller& caller, const std::string& cloud_id) const {
+    std::optional<v1::Cloud> c;
+    if (!caller.scoped || store_.CloudOwned(caller.tenant, cloud_id)) c = store_.FindCloud(cloud_id);
     if (!c) throw Error(ErrorCode::kNotFound, "cloud " + cloud_id + " not found");
     return *c;
 }
 
-void Operations::DeleteCloud(const std::string& cloud_id) {
-    if (!store_.DeleteCloud(cloud_id))
-        throw Error(ErrorCode::kNotFound, "cloud " + cloud_id + " not found");
-    spdlog::info("cloud {} deleted", cloud_id);
+void Operations::DeleteCloud(const Caller& caller, const std::string& cloud_id) {
+    const auto not_found = [&] { return Error(ErrorCode::kNotFound, "cloud " + cloud_id + " not found"); };
+    if (!caller.scoped) {
+        if (!store_.DeleteCloud(cloud_id)) throw not_found();
+        spdlog::info("cloud {} deleted", cloud_id);
+        return;
+    }
+    std::size_t remaining = 0;
+    if (!store_.RemoveCloudOwner(caller.tenant, cloud_id, &remaining)) throw not_found();
+    if (remaining == 0) store_.DeleteCloud(cloud_id);
+    spdlog::info("cloud {} deleted by tenant {}{}", cloud_id, caller.tenant,
+                 remaining ? " (other tenants keep it)" : "");
 }
 
-v1::Job Operations::Submit(const v1::JobSpec& spec) {
-    v1::Job job = jobs_.Submit(spec);
+v1::Job Operations::Submit(const Caller& caller, const v1::JobSpec& spec) {
+    if (caller.scoped) {
+        // Validated first, as the manager does; then the same message as the manager's for a
+        // cloud that does not exist at all.
+        worker::ValidateSpec(spec);
+        for (const worker::CloudInput& input : worker::KindOf(spec).Inputs(spec))
+            if (!store_.CloudOwned(caller.tenant, input.id))
+                throw Error(ErrorCode::kNotFound,
+                            input.field + ": cloud " + input.id + " not found (upload it first)");
+    }
+    v1::Job job = jobs_.Submit(spec, caller.tenant);
     metrics_.SetQueueDepth(jobs_.QueueDepth());
     return job;
 }
 
-v1::Job Operations::Cancel(const std::string& job_id) {
+v1::Job Operations::Cancel(const Caller& caller, const std::string& job_id) {
+    if (caller.scoped) GetJob(caller, job_id);  // kNotFound for another tenant's job
     v1::Job job = jobs_.Cancel(job_id);
     metrics_.SetQueueDepth(jobs_.QueueDepth());
     return job;
 }
 
-v1::Job Operations::GetJob(const std::string& job_id) const {
+v1::Job Operations::GetJob(const Caller& caller, const std::string& job_id) const {
     auto job = jobs_.Get(job_id);
-    if (!job) throw Error(ErrorCode::kNotFound, "job " + job_id + " not found");
+    if (!job || (caller.scoped && job->tenant() != caller.tenant))
+        throw Error(ErrorCode::kNotFound, "job " + job_id + " not found");
     return *job;
 }
 
-std::vector<v1::Job> Operations::ListJobs(std::uint32_t limit, v1::JobState state) const {
+std::vector<v1::Job> Operations::ListJobs(const Caller& caller, std::uint32_t limit,
+                                          v1::JobState state) const {
     if (limit > 10000) throw Error(ErrorCode::kInvalidArgument, "limit: at most 10000");
-    return jobs_.List(limit, state);
+    return jobs_.List(limit, state, caller.scoped ? &caller.tenant : nullptr);
 }
 
-ResultFile Operations::Result(const std::string& job_id) const {
+ResultFile Operations::Result(const Caller& caller, const std::string& job_id) const {
     ResultFile r;
-    r.job = GetJob(job_id);
+    r.job = GetJob(caller, job_id);
     if (r.job.state() != v1::SUCCEEDED)
         throw Error(ErrorCode::kFailedPrecondition, "job " + job_id + " is " +
                                                         v1::JobState_Name(r.job.state()) +

@@ -11,6 +11,7 @@
 #include <string>
 #include <vector>
 
+#include "auth.h"
 #include "executor.h"
 #include "metrics.h"
 #include "surfel/v1/surfel.pb.h"
@@ -39,27 +40,36 @@ struct ResultFile {
 
 /// The shared implementation of every operation. Every reference must outlive it; `ingest` must
 /// also outlive the fronts that run it.
+///
+/// Every operation takes the Caller (auth.h). A scoped caller (auth on) sees only its tenant's
+/// clouds and jobs: another tenant's id is kNotFound with the very message of an unknown id.
 class Operations {
   public:
     Operations(worker::Store& store, worker::JobManager& jobs, Metrics& metrics, Executor& ingest,
                ServiceLimits limits);
 
     /// Bytes committed so far for an unfinished upload (0 when none). Checks the id.
-    std::int64_t CommittedUploadBytes(const std::string& upload_id) const;
-    /// kNotFound when unknown.
-    v1::Cloud GetCloud(const std::string& cloud_id) const;
-    /// kNotFound when unknown.
-    void DeleteCloud(const std::string& cloud_id);
+    std::int64_t CommittedUploadBytes(const Caller& caller, const std::string& upload_id) const;
+    /// kNotFound when unknown (or not the caller's).
+    v1::Cloud GetCloud(const Caller& caller, const std::string& cloud_id) const;
+    /// kNotFound when unknown. A scoped caller drops its own ownership; the bytes go with the
+    /// last owner.
+    void DeleteCloud(const Caller& caller, const std::string& cloud_id);
 
-    v1::Job Submit(const v1::JobSpec& spec);
+    /// kNotFound for an input cloud the caller does not own, then JobManager::Submit.
+    v1::Job Submit(const Caller& caller, const v1::JobSpec& spec);
     /// kNotFound when unknown.
-    v1::Job Cancel(const std::string& job_id);
+    v1::Job Cancel(const Caller& caller, const std::string& job_id);
     /// kNotFound when unknown.
-    v1::Job GetJob(const std::string& job_id) const;
+    v1::Job GetJob(const Caller& caller, const std::string& job_id) const;
     /// Newest first; `limit` 0 = 100, at most 10000 (kInvalidArgument beyond).
-    std::vector<v1::Job> ListJobs(std::uint32_t limit, v1::JobState state) const;
+    std::vector<v1::Job> ListJobs(const Caller& caller, std::uint32_t limit,
+                                  v1::JobState state) const;
     /// kNotFound for an unknown job or a vanished file, kFailedPrecondition unless SUCCEEDED.
-    ResultFile Result(const std::string& job_id) const;
+    ResultFile Result(const Caller& caller, const std::string& job_id) const;
+    /// The name of the part file (and of the claim) of a caller's upload id: the id itself for
+    /// an unscoped caller, else prefixed by a digest of the tenant (ids are per tenant).
+    static std::string ScopedUploadId(const Caller& caller, const std::string& upload_id);
     /// The events a watcher of an already final job gets: its state, then finished or failed.
     static std::vector<v1::JobEvent> FinalEvents(const v1::Job& job);
 
@@ -73,6 +83,11 @@ class Operations {
     /// Where uploads are hashed (on resume) and parsed.
     Executor& ingest() { return ingest_; }
     const ServiceLimits& limits() const { return limits_; }
+    /// Turns credentials into a Caller; off (everyone is Caller{}) unless set.
+    const Authenticator& auth() const { return auth_; }
+    void SetAuthenticator(Authenticator auth) { auth_ = std::move(auth); }
+    /// Signs the browser's event-stream URLs (HTTP front).
+    const UrlSigner& url_signer() const { return url_signer_; }
 
   private:
     worker::Store& store_;
@@ -80,6 +95,8 @@ class Operations {
     Metrics& metrics_;
     Executor& ingest_;
     ServiceLimits limits_;
+    Authenticator auth_;
+    UrlSigner url_signer_;
     std::mutex uploads_mutex_;
     std::set<std::string> active_uploads_;
 };

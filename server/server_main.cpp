@@ -3,6 +3,7 @@
 // page.
 #include <grpcpp/ext/proto_server_reflection_plugin.h>
 #include <grpcpp/health_check_service_interface.h>
+#include <grpcpp/security/server_credentials.h>
 #include <grpcpp/server_builder.h>
 #include <signal.h>
 #include <spdlog/sinks/stdout_color_sinks.h>
@@ -12,10 +13,12 @@
 #include <chrono>
 #include <filesystem>
 #include <fstream>
+#include <iostream>
 #include <memory>
 #include <sstream>
 #include <thread>
 
+#include "auth.h"
 #include "http_front.h"
 #include "metrics.h"
 #include "operations.h"
@@ -88,7 +91,42 @@ struct Flags {
     std::string web_root;
     std::size_t http_threads = 16;
     double http_keepalive_s = 15;
+    std::string auth_tokens;
+    bool hash_token = false;
+    std::string tls_cert, tls_key, tls_client_ca;
 };
+
+std::string ReadPem(const std::string& path, const char* flag) {
+    std::ifstream in(path, std::ios::binary);
+    if (!in) throw surfel::Error(surfel::ErrorCode::kInvalidArgument, std::string(flag) + ": cannot read " + path);
+    std::stringstream s;
+    s << in.rdbuf();
+    return s.str();
+}
+
+// The gRPC port's credentials: plaintext, TLS (--tls-cert/--tls-key), or mutual TLS
+// (--tls-client-ca: a client certificate signed by that CA is required and verified).
+std::shared_ptr<grpc::ServerCredentials> GrpcCredentials(const Flags& f) {
+    using surfel::Error, surfel::ErrorCode;
+    if (f.tls_cert.empty() != f.tls_key.empty())
+        throw Error(ErrorCode::kInvalidArgument, "--tls-cert and --tls-key go together");
+    if (f.tls_cert.empty()) {
+        if (!f.tls_client_ca.empty())
+            throw Error(ErrorCode::kInvalidArgument, "--tls-client-ca needs --tls-cert and --tls-key");
+        return grpc::InsecureServerCredentials();
+    }
+    grpc::SslServerCredentialsOptions o(f.tls_client_ca.empty()
+                                            ? GRPC_SSL_DONT_REQUEST_CLIENT_CERTIFICATE
+                                            : GRPC_SSL_REQUEST_AND_REQUIRE_CLIENT_CERTIFICATE_AND_VERIFY);
+    o.pem_key_cert_pairs.push_back({ReadPem(f.tls_key, "--tls-key"), ReadPem(f.tls_cert, "--tls-cert")});
+    if (!f.tls_client_ca.empty()) o.pem_root_certs = ReadPem(f.tls_client_ca, "--tls-client-ca");
+    return grpc::SslServerCredentials(o);
+}
+
+bool IsLoopback(const std::string& host) {
+    return host == "127.0.0.1" || host == "localhost" || host == "::1" || host == "[::1]" ||
+           host.rfind("127.", 0) == 0;
+}
 
 }  // namespace
 
@@ -162,6 +200,19 @@ int main(int argc, char** argv) {
     app.add_option("--http-keepalive-s", f.http_keepalive_s, "Seconds between comment lines on an idle event stream")
         ->default_val(15)
         ->check(CLI::Range(0.05, 3600.0));
+    app.add_option("--auth-tokens", f.auth_tokens,
+                   "Bearer tokens, one 'NAME TOKEN' or 'NAME sha256:HEX' per line ('#' comments): every "
+                   "API call needs 'authorization: Bearer TOKEN', and each NAME is a tenant that sees "
+                   "only its own clouds and jobs (docs/security.md); off unless given")
+        ->check(CLI::ExistingFile);
+    app.add_flag("--hash-token", f.hash_token,
+                 "Read a token from stdin, print its 'sha256:HEX' form for --auth-tokens, and exit");
+    app.add_option("--tls-cert", f.tls_cert, "TLS certificate chain (PEM) for the gRPC and HTTP ports")
+        ->check(CLI::ExistingFile);
+    app.add_option("--tls-key", f.tls_key, "TLS private key (PEM) of --tls-cert")->check(CLI::ExistingFile);
+    app.add_option("--tls-client-ca", f.tls_client_ca,
+                   "Mutual TLS: require client certificates signed by this CA (PEM) on both ports")
+        ->check(CLI::ExistingFile);
     app.footer(
         "Jobs persist in DATA_DIR: after a crash or restart, queued and running jobs run again.\n"
         "Scale-out: --store postgres://... --blobs dir:/shared on every server and surfel-worker; --workers 0 makes\n"
@@ -172,6 +223,17 @@ int main(int argc, char** argv) {
         "page at / (docs/http.md).\n"
         "Example:\n  surfel-server --port 50051 --data-dir /var/lib/surfel --metrics 127.0.0.1:9464 --http 127.0.0.1:8080");
     CLI11_PARSE(app, argc, argv);
+    if (f.hash_token) {
+        std::string token;
+        std::getline(std::cin, token);
+        while (!token.empty() && (token.back() == '\r' || token.back() == ' ')) token.pop_back();
+        if (token.size() < 16) {
+            std::fprintf(stderr, "--hash-token: a token has at least 16 characters (got %zu)\n", token.size());
+            return 2;
+        }
+        std::printf("%s\n", server::HashToken(token).c_str());
+        return 0;
+    }
 
     auto logger = spdlog::stderr_color_mt("surfel");
     spdlog::set_default_logger(logger);
@@ -210,13 +272,19 @@ int main(int argc, char** argv) {
         // while server->Shutdown waits for the upload calls its tasks finish.
         server::Executor ingest(f.ingest_threads, f.ingest_queue);
         server::Operations ops(store, jobs, metrics, ingest, limits);
+        if (!f.auth_tokens.empty()) {
+            server::TokenSet tokens = server::TokenSet::Load(f.auth_tokens);
+            spdlog::info("auth: {} tenants from {}", tokens.size(), f.auth_tokens);
+            ops.SetAuthenticator(server::Authenticator(std::move(tokens)));
+        }
         server::SurfelService service(ops);
+        const std::shared_ptr<grpc::ServerCredentials> credentials = GrpcCredentials(f);
 
         grpc::EnableDefaultHealthCheckService(true);
         grpc::reflection::InitProtoReflectionServerBuilderPlugin();
         grpc::ServerBuilder builder;
         int bound_port = 0;
-        builder.AddListeningPort(f.host + ":" + std::to_string(f.port), grpc::InsecureServerCredentials(), &bound_port);
+        builder.AddListeningPort(f.host + ":" + std::to_string(f.port), credentials, &bound_port);
         builder.RegisterService(&service);
         builder.SetMaxReceiveMessageSize(4 << 20);
         std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
@@ -244,13 +312,25 @@ int main(int argc, char** argv) {
             ho.web_root = f.web_root.empty() ? DefaultWebRoot() : f.web_root;
             ho.threads = f.http_threads;
             ho.sse_keepalive_ms = static_cast<int>(f.http_keepalive_s * 1000);
+            ho.tls_cert = f.tls_cert;
+            ho.tls_key = f.tls_key;
+            ho.tls_client_ca = f.tls_client_ca;
             http = std::make_unique<server::HttpFront>(ops, ho);
             http->Start();
-            spdlog::info("HTTP/JSON API and web page on http://{}:{}/ (page from {})", ho.host, http->port(),
+            const char* scheme = ho.tls_cert.empty() ? "http" : "https";
+            spdlog::info("HTTP/JSON API and web page on {}://{}:{}/ (page from {})", scheme, ho.host, http->port(),
                          ho.web_root);
-            std::printf("http on http://%s:%d/\n", ho.host.c_str(), http->port());
+            std::printf("http on %s://%s:%d/\n", scheme, ho.host.c_str(), http->port());
+            if (f.auth_tokens.empty() && !IsLoopback(ho.host))
+                spdlog::warn("HTTP on {} (not loopback) without --auth-tokens: anyone who reaches it can "
+                             "use every cloud and job", ho.host);
             if (!f.http_port_file.empty()) WritePortFile(f.http_port_file, http->port());
         }
+        if (f.auth_tokens.empty() && !IsLoopback(f.host))
+            spdlog::warn("gRPC on {} (not loopback) without --auth-tokens: anyone who reaches it can use "
+                         "every cloud and job", f.host);
+        if (f.tls_cert.empty() && !IsLoopback(f.host) && !f.auth_tokens.empty())
+            spdlog::warn("tokens travel in plaintext on {}: add --tls-cert/--tls-key", f.host);
         LogImagePlugin();
         jobs.Start();
         spdlog::info("surfel-server listening on {}:{} (store {}, blobs {}, {} workers, {} ingest threads{}{})",

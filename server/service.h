@@ -48,6 +48,10 @@ public:
     /// Where uploads are hashed (on resume) and parsed.
     Executor& ingest() { return ops_.ingest(); }
     const ServiceLimits& limits() const { return ops_.limits(); }
+    /// The caller of a call: its `authorization: Bearer <token>` metadata through
+    /// Operations::auth(). Throws Error(kUnauthenticated) when auth is on and it is missing or
+    /// wrong. (grpc.health.v1 and reflection are other services: they stay open.)
+    Caller Authenticate(const grpc::CallbackServerContext* ctx) const;
 
 private:
     Operations& ops_;

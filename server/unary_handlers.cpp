@@ -9,12 +9,13 @@ namespace surfel::server {
 namespace {
 
 // Runs `fn` and finishes a unary call with OK or the mapped status of what it threw.
+// The caller is authenticated first (UNAUTHENTICATED with auth on and no valid token).
 template <typename Fn>
-grpc::ServerUnaryReactor* Unary(grpc::CallbackServerContext* ctx, Fn&& fn) {
+grpc::ServerUnaryReactor* Unary(const SurfelService& service, grpc::CallbackServerContext* ctx, Fn&& fn) {
     auto* reactor = ctx->DefaultReactor();
     grpc::Status status;
     try {
-        fn();
+        fn(service.Authenticate(ctx));
     } catch (...) {
         status = worker::CurrentExceptionStatus();
     }
@@ -26,41 +27,41 @@ grpc::ServerUnaryReactor* Unary(grpc::CallbackServerContext* ctx, Fn&& fn) {
 
 grpc::ServerUnaryReactor* SurfelService::QueryUpload(grpc::CallbackServerContext* ctx, const v1::QueryUploadRequest* req,
                                                      v1::QueryUploadResponse* resp) {
-    return Unary(ctx, [&] { resp->set_committed_size(ops_.CommittedUploadBytes(req->upload_id())); });
+    return Unary(*this, ctx, [&](const Caller& caller) { resp->set_committed_size(ops_.CommittedUploadBytes(caller, req->upload_id())); });
 }
 
 grpc::ServerUnaryReactor* SurfelService::GetCloud(grpc::CallbackServerContext* ctx, const v1::GetCloudRequest* req,
                                                   v1::Cloud* resp) {
-    return Unary(ctx, [&] { *resp = ops_.GetCloud(req->cloud_id()); });
+    return Unary(*this, ctx, [&](const Caller& caller) { *resp = ops_.GetCloud(caller, req->cloud_id()); });
 }
 
 grpc::ServerUnaryReactor* SurfelService::DeleteCloud(grpc::CallbackServerContext* ctx, const v1::DeleteCloudRequest* req,
                                                      v1::DeleteCloudResponse* resp) {
-    return Unary(ctx, [&] {
-        ops_.DeleteCloud(req->cloud_id());
+    return Unary(*this, ctx, [&](const Caller& caller) {
+        ops_.DeleteCloud(caller, req->cloud_id());
         resp->set_deleted(true);
     });
 }
 
 grpc::ServerUnaryReactor* SurfelService::Submit(grpc::CallbackServerContext* ctx, const v1::SubmitRequest* req,
                                                 v1::Job* resp) {
-    return Unary(ctx, [&] { *resp = ops_.Submit(req->spec()); });
+    return Unary(*this, ctx, [&](const Caller& caller) { *resp = ops_.Submit(caller, req->spec()); });
 }
 
 grpc::ServerUnaryReactor* SurfelService::Cancel(grpc::CallbackServerContext* ctx, const v1::CancelRequest* req,
                                                 v1::Job* resp) {
-    return Unary(ctx, [&] { *resp = ops_.Cancel(req->job_id()); });
+    return Unary(*this, ctx, [&](const Caller& caller) { *resp = ops_.Cancel(caller, req->job_id()); });
 }
 
 grpc::ServerUnaryReactor* SurfelService::GetJob(grpc::CallbackServerContext* ctx, const v1::GetJobRequest* req,
                                                 v1::Job* resp) {
-    return Unary(ctx, [&] { *resp = ops_.GetJob(req->job_id()); });
+    return Unary(*this, ctx, [&](const Caller& caller) { *resp = ops_.GetJob(caller, req->job_id()); });
 }
 
 grpc::ServerUnaryReactor* SurfelService::ListJobs(grpc::CallbackServerContext* ctx, const v1::ListJobsRequest* req,
                                                   v1::ListJobsResponse* resp) {
-    return Unary(ctx, [&] {
-        for (v1::Job& j : ops_.ListJobs(req->limit(), req->state())) *resp->add_jobs() = std::move(j);
+    return Unary(*this, ctx, [&](const Caller& caller) {
+        for (v1::Job& j : ops_.ListJobs(caller, req->limit(), req->state())) *resp->add_jobs() = std::move(j);
     });
 }
 

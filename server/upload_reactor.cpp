@@ -32,8 +32,8 @@ using worker::CurrentExceptionStatus;
 // completes and stores the cloud (the client's next attempt then finds it by its hash).
 class UploadReactor final : public grpc::ServerReadReactor<v1::UploadRequest> {
   public:
-    UploadReactor(SurfelService& service, v1::Cloud* response)
-        : service_(service), response_(response) {
+    UploadReactor(SurfelService& service, const Caller& caller, v1::Cloud* response)
+        : service_(service), caller_(caller), response_(response) {
         StartRead(&request_);
     }
 
@@ -46,7 +46,7 @@ class UploadReactor final : public grpc::ServerReadReactor<v1::UploadRequest> {
         }
         try {
             if (!session_)
-                session_ = std::make_unique<UploadSession>(service_.ops(), request_.upload_id(),
+                session_ = std::make_unique<UploadSession>(service_.ops(), caller_, request_.upload_id(),
                                                            request_.filename());
             CheckChunk();
         } catch (...) {
@@ -166,6 +166,7 @@ class UploadReactor final : public grpc::ServerReadReactor<v1::UploadRequest> {
     }
 
     SurfelService& service_;
+    Caller caller_;
     v1::Cloud* response_;
     v1::UploadRequest request_;
     std::atomic<bool> cancelled_{false};
@@ -175,8 +176,9 @@ class UploadReactor final : public grpc::ServerReadReactor<v1::UploadRequest> {
 }  // namespace
 
 grpc::ServerReadReactor<v1::UploadRequest>* NewUploadReactor(SurfelService& service,
+                                                             const Caller& caller,
                                                              v1::Cloud* response) {
-    return new UploadReactor(service, response);
+    return new UploadReactor(service, caller, response);
 }
 
 }  // namespace surfel::server

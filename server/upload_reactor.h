@@ -9,6 +9,7 @@
 namespace surfel::server {
 
 /// A reactor for one Upload call; it deletes itself in OnDone.
-grpc::ServerReadReactor<v1::UploadRequest>* NewUploadReactor(SurfelService& service, v1::Cloud* response);
+grpc::ServerReadReactor<v1::UploadRequest>* NewUploadReactor(SurfelService& service, const Caller& caller,
+                                                             v1::Cloud* response);
 
 }  // namespace surfel::server

@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <cctype>
 #include <filesystem>
+#include <optional>
 
 #include "surfel/base/error.h"
 #include "surfel/io/cloud_io.h"
@@ -22,24 +23,25 @@ void CheckUploadId(const std::string& id) {
     if (!ok) throw Error(ErrorCode::kInvalidArgument, "upload_id: must match [A-Za-z0-9_-]{1,128}");
 }
 
-UploadSession::UploadSession(Operations& ops, std::string upload_id, const std::string& filename)
-    : ops_(ops), id_(std::move(upload_id)) {
+UploadSession::UploadSession(Operations& ops, const Caller& caller, std::string upload_id,
+                             const std::string& filename)
+    : ops_(ops), caller_(caller), id_(std::move(upload_id)) {
     CheckUploadId(id_);
-    if (!ops_.ClaimUpload(id_))
+    if (!ops_.ClaimUpload(Operations::ScopedUploadId(caller_, id_)))
         throw Error(ErrorCode::kFailedPrecondition,
                     "upload " + id_ + " is in progress on another call");
     claimed_ = true;
     filename_ = filename.empty() ? id_ : fs::path(filename).filename().string();
     if (filename_.empty()) filename_ = id_;
-    path_ = ops_.store().UploadPath(id_);
-    committed_ = static_cast<std::uint64_t>(ops_.CommittedUploadBytes(id_));
+    path_ = ops_.store().UploadPath(Operations::ScopedUploadId(caller_, id_));
+    committed_ = static_cast<std::uint64_t>(ops_.CommittedUploadBytes(caller_, id_));
     hashed_ = committed_ == 0;
     out_.open(path_, std::ios::binary | std::ios::app);
     if (!out_) throw Error(ErrorCode::kInternal, "cannot open " + path_);
 }
 
 UploadSession::~UploadSession() {
-    if (claimed_) ops_.ReleaseUpload(id_);
+    if (claimed_) ops_.ReleaseUpload(Operations::ScopedUploadId(caller_, id_));
 }
 
 std::string UploadSession::ResumeHint() const {
@@ -88,7 +90,12 @@ v1::Cloud UploadSession::Finish() {
     SURFEL_CHECK(hashed_, "Finish before HashCommitted on upload " << id_);
     out_.close();
     const std::string id = hash_.FinishHex();
-    if (auto existing = ops_.store().FindCloud(id)) {
+    // Deduplication answers only from the caller's own clouds: a tenant learns nothing about
+    // another's files (docs/security.md). Unscoped callers (no auth) see every cloud.
+    const bool own = !caller_.scoped || ops_.store().CloudOwned(caller_.tenant, id);
+    std::optional<v1::Cloud> existing = own ? ops_.store().FindCloud(id) : std::nullopt;
+    if (existing) {
+        ops_.store().AddCloudOwner(caller_.tenant, id);
         const std::uint64_t size = committed_;
         Discard();
         existing->set_deduplicated(true);
@@ -111,7 +118,10 @@ v1::Cloud UploadSession::Finish() {
     // Durable before it is recorded and acknowledged: dir backend fsync + rename + fsync of the
     // directory; large objects one committed transaction (docs/durability.md).
     try {
-        ops_.store().blobs().PutFile(worker::CloudBlobKey(id), path_, id);
+        if (caller_.scoped && ops_.store().blobs().Size(worker::CloudBlobKey(id)))
+            Discard();  // another tenant's identical bytes are already stored: keep one copy
+        else
+            ops_.store().blobs().PutFile(worker::CloudBlobKey(id), path_, id);
     } catch (...) {
         Discard();
         ops_.metrics().CountUpload(false);
@@ -127,6 +137,7 @@ v1::Cloud UploadSession::Finish() {
     c.set_size_bytes(bytes.size());
     c.set_format(std::string(cloud.format));
     ops_.store().PutCloud(c);
+    ops_.store().AddCloudOwner(caller_.tenant, id);
     ops_.metrics().CountUpload(true);
     spdlog::info("upload {}: stored cloud {} ({} points, {} bytes)", id_, id, cloud.points,
                  bytes.size());

@@ -24,7 +24,9 @@ class UploadSession {
     /// Checks and claims `upload_id` (kFailedPrecondition while another call holds it) and opens
     /// its part file for appending; bytes committed by an earlier call are kept (a resume).
     /// `filename` (its extension picks the parser for non-PLY content) defaults to the id.
-    UploadSession(Operations& ops, std::string upload_id, const std::string& filename);
+    /// Upload ids are the caller's own (Operations::ScopedUploadId names the part file).
+    UploadSession(Operations& ops, const Caller& caller, std::string upload_id,
+                  const std::string& filename);
     /// Releases the claim. The part file stays for a resume unless Finish or Discard removed it.
     ~UploadSession();
     UploadSession(const UploadSession&) = delete;
@@ -45,7 +47,9 @@ class UploadSession {
     void HashCommitted();
     /// Appends and flushes `data` (after CheckFits). Needs hashed().
     void Append(std::string_view data);
-    /// The whole file is here: a cloud stored before is returned at once (deduplicated); otherwise
+    /// The whole file is here: a cloud the caller stored before is returned at once
+    /// (deduplicated); one only other tenants stored is parsed as if new (the same answer and
+    /// about the same time as a new file; the bytes are kept once on disk); otherwise
     /// the bytes are parsed (kInvalidArgument naming line/element/field, kResourceExhausted over
     /// max_points), moved to the content-addressed store and recorded. Slow: run it off a
     /// transport's threads. The part file is gone afterwards, whatever the outcome.
@@ -55,6 +59,7 @@ class UploadSession {
 
   private:
     Operations& ops_;
+    Caller caller_;
     std::string id_, filename_, path_;
     bool claimed_ = false;
     bool hashed_ = false;  // hash_ covers the committed bytes

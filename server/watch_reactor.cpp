@@ -27,12 +27,14 @@ using worker::CurrentExceptionStatus;
 // for a queued job, the same work as the unary Cancel.
 class WatchReactor final : public grpc::ServerWriteReactor<v1::JobEvent> {
 public:
-    WatchReactor(SurfelService& service, const v1::WatchRequest& request) : service_(service), request_(request) {
+    WatchReactor(SurfelService& service, const Caller& caller, const v1::WatchRequest& request)
+        : service_(service), request_(request) {
         sink_ = std::make_shared<Sink>();
         sink_->reactor = this;
         std::weak_ptr<Sink> weak = sink_;
         std::optional<v1::Job> job;
         try {
+            if (caller.scoped) service_.ops().GetJob(caller, request_.job_id());  // NOT_FOUND if not its own
             job = service_.jobs().Subscribe(
                 request_.job_id(),
                 [weak](const v1::JobEvent& e) {
@@ -176,8 +178,9 @@ private:
 
 }  // namespace
 
-grpc::ServerWriteReactor<v1::JobEvent>* NewWatchReactor(SurfelService& service, const v1::WatchRequest& request) {
-    return new WatchReactor(service, request);
+grpc::ServerWriteReactor<v1::JobEvent>* NewWatchReactor(SurfelService& service, const Caller& caller,
+                                                       const v1::WatchRequest& request) {
+    return new WatchReactor(service, caller, request);
 }
 
 }  // namespace surfel::server

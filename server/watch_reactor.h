@@ -8,6 +8,7 @@
 namespace surfel::server {
 
 /// A reactor for one Watch call; it deletes itself in OnDone.
-grpc::ServerWriteReactor<v1::JobEvent>* NewWatchReactor(SurfelService& service, const v1::WatchRequest& request);
+grpc::ServerWriteReactor<v1::JobEvent>* NewWatchReactor(SurfelService& service, const Caller& caller,
+                                                       const v1::WatchRequest& request);
 
 }  // namespace surfel::server

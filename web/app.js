@@ -28,10 +28,44 @@ async function failure(response) {
   return new Error(message);
 }
 
+// ---- auth: a server started with --auth-tokens wants "Authorization: Bearer <token>" on every
+// API call (docs/security.md). The token lives in sessionStorage (this tab only).
+function token() { return sessionStorage.getItem("surfel-token") || ""; }
+function authHeaders(extra) {
+  const h = { ...(extra || {}) };
+  if (token()) h.Authorization = `Bearer ${token()}`;
+  return h;
+}
+// A result URL usable in <img src> / <a href>: the path itself without a token; with one, the
+// bytes fetched with the header into an object URL (a link cannot send headers).
+async function resultHref(jobId) {
+  const path = `/v1/jobs/${jobId}/result`;
+  if (!token()) return path;
+  const response = await fetch(path, { headers: authHeaders() });
+  if (!response.ok) throw await failure(response);
+  return URL.createObjectURL(await response.blob());
+}
+// The event-stream URL: EventSource sends no headers, so with a token the server signs a
+// short-lived URL for it (POST /v1/jobs/{id}:eventsUrl).
+async function eventsUrl(jobId) {
+  if (!token()) return `/v1/jobs/${jobId}/events`;
+  return (await api("POST", `/v1/jobs/${jobId}:eventsUrl`)).url;
+}
+{
+  const input = document.getElementById("token");
+  if (input) {
+    input.value = token();
+    input.addEventListener("change", () => {
+      sessionStorage.setItem("surfel-token", input.value.trim());
+      refreshJobs();
+    });
+  }
+}
+
 async function api(method, path, body) {
   let response;
   try {
-    response = await fetch(path, { method, headers: body ? { "Content-Type": "application/json" } : {},
+    response = await fetch(path, { method, headers: authHeaders(body ? { "Content-Type": "application/json" } : {}),
                                    body: body ? JSON.stringify(body) : undefined });
   } catch (e) {
     throw new Error(`cannot reach the server (${method} ${path}): ${e.message}`);
@@ -49,6 +83,7 @@ function upload(file, bar, status) {
   return new Promise((resolve, reject) => {
     const xhr = new XMLHttpRequest();
     xhr.open("POST", `/v1/clouds?filename=${encodeURIComponent(file.name)}`);
+    if (token()) xhr.setRequestHeader("Authorization", `Bearer ${token()}`);
     xhr.upload.onprogress = (e) => { if (e.lengthComputable) bar.value = e.loaded / e.total; };
     xhr.onerror = () => reject(new Error(`upload of ${file.name} failed: the connection broke`));
     xhr.onload = () => {
@@ -286,8 +321,8 @@ function renderSpec(format) {
 function follow(jobId, bar, status) {
   bar.hidden = false;
   bar.value = 0;
-  return new Promise((resolve, reject) => {
-    const events = new EventSource(`/v1/jobs/${jobId}/events`);
+  return eventsUrl(jobId).then((url) => new Promise((resolve, reject) => {
+    const events = new EventSource(url);
     events.onmessage = (m) => {
       const e = JSON.parse(m.data);
       if (e.state) status.textContent = e.state.state.toLowerCase();
@@ -308,7 +343,7 @@ function follow(jobId, bar, status) {
                                   `${job.state.toLowerCase()}${job.statusMessage ? ": " + job.statusMessage : ""}`)),
         (e) => reject(e));
     };
-  });
+  }));
 }
 
 async function submitAndFollow(spec, bar, status) {
@@ -329,7 +364,7 @@ $("render-form").addEventListener("submit", async (ev) => {
     await new Promise((resolve, reject) => {
       img.onload = resolve;
       img.onerror = () => reject(new Error(`the image of job ${job.id} did not load`));
-      img.src = `/v1/jobs/${job.id}/result`;
+      resultHref(job.id).then((href) => { img.src = href; }, reject);
     });
     $("png-download").href = img.src;
     $("png-download").download = `render-${job.id.slice(0, 12)}.png`;
@@ -350,7 +385,7 @@ $("exr-download").addEventListener("click", async (ev) => {
     const bar = document.createElement("progress");
     const job = await submitAndFollow({ render: spec }, bar, $("exr-status"));
     const a = document.createElement("a");
-    a.href = `/v1/jobs/${job.id}/result`;
+    a.href = await resultHref(job.id);
     a.download = `render-${job.id.slice(0, 12)}.exr`;
     document.body.appendChild(a);
     a.click();
@@ -373,14 +408,14 @@ async function cloudJob(kind, spec) {
     refreshJobs();
     const result = await follow(job.id, $(`${kind}-progress`), status);
     const url = `/v1/jobs/${job.id}/result`;
-    const response = await fetch(url);
+    const response = await fetch(url, { headers: authHeaders() });
     if (!response.ok) throw await failure(response);
     const parsed = parseCloud(await response.arrayBuffer(), `${kind}.ply`);
     preview(parsed, state.cloud);
     const n = parsed.positions.length / 3;
     status.textContent = `done: ${n.toLocaleString()} points` + reportSummary(kind, result);
     const a = $(`${kind}-download`);
-    a.href = url;
+    a.href = await resultHref(job.id);
     a.download = `${kind}-${job.id.slice(0, 12)}.ply`;
     a.hidden = false;
   } catch (e) {

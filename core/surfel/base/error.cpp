@@ -11,6 +11,7 @@ std::string_view ErrorCodeName(ErrorCode code) {
         case ErrorCode::kDeadlineExceeded: return "DeadlineExceeded";
         case ErrorCode::kUnavailable: return "Unavailable";
         case ErrorCode::kFailedPrecondition: return "FailedPrecondition";
+        case ErrorCode::kUnauthenticated: return "Unauthenticated";
         case ErrorCode::kInternal: return "Internal";
         case ErrorCode::kDataLoss: return "DataLoss";
     }

@@ -22,6 +22,7 @@ enum class ErrorCode {
     kFailedPrecondition, ///< The request does not fit the current state (a result before its job ended).
     kInternal,           ///< A bug: an invariant of the library did not hold.
     kDataLoss,           ///< Stored bytes no longer match their SHA-256 (a flipped byte on disk).
+    kUnauthenticated,    ///< The caller presented no valid credentials (the service's auth).
 };
 
 /// The name of a code, e.g. "InvalidArgument".

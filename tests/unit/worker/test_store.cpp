@@ -214,6 +214,43 @@ TEST_P(StoreTest, JobsPutFindListUnfinishedReusable) {
     EXPECT_EQ(ids(store_->Unfinished()), (V{"j2", "j5"}));
 }
 
+// Migration 4: cloud owners per tenant, jobs listed per tenant (docs/security.md).
+TEST_P(StoreTest, TenantsOwnCloudsAndListTheirJobs) {
+    v1::Cloud c;
+    c.set_id("x");
+    std::ofstream(store_->CloudPath("x")) << "bytes";
+    store_->PutCloud(c);
+    EXPECT_FALSE(store_->CloudOwned("alice", "x"));
+    store_->AddCloudOwner("alice", "x");
+    store_->AddCloudOwner("alice", "x");  // no-op
+    store_->AddCloudOwner("bob", "x");
+    EXPECT_TRUE(store_->CloudOwned("alice", "x"));
+    EXPECT_FALSE(store_->CloudOwned("", "x"));
+    std::size_t remaining = 9;
+    EXPECT_FALSE(store_->RemoveCloudOwner("carol", "x", &remaining));
+    EXPECT_EQ(remaining, 2u);
+    EXPECT_TRUE(store_->RemoveCloudOwner("bob", "x", &remaining));
+    EXPECT_EQ(remaining, 1u);
+    EXPECT_FALSE(store_->CloudOwned("bob", "x"));
+    EXPECT_TRUE(store_->DeleteCloud("x"));  // every owner goes with the record
+    EXPECT_FALSE(store_->CloudOwned("alice", "x"));
+
+    v1::Job a = MakeJob("ja", v1::QUEUED, 1), b = MakeJob("jb", v1::QUEUED, 2);
+    a.set_tenant("alice");
+    b.set_tenant("bob");
+    store_->PutJob(a, "k");
+    store_->PutJob(b, "k");
+    a.set_state(v1::SUCCEEDED);
+    store_->PutJob(a, "");  // a transition keeps the tenant
+    const std::string alice = "alice", none;
+    ASSERT_EQ(store_->ListJobs(10, v1::JOB_STATE_UNSPECIFIED, &alice).size(), 1u);
+    EXPECT_EQ(store_->ListJobs(10, v1::JOB_STATE_UNSPECIFIED, &alice)[0].id(), "ja");
+    EXPECT_EQ(store_->ListJobs(10, v1::SUCCEEDED, &alice).size(), 1u);
+    EXPECT_EQ(store_->ListJobs(10, v1::QUEUED, &alice).size(), 0u);
+    EXPECT_EQ(store_->ListJobs(10, v1::JOB_STATE_UNSPECIFIED, &none).size(), 0u);
+    EXPECT_EQ(store_->ListJobs(10, v1::JOB_STATE_UNSPECIFIED).size(), 2u);
+}
+
 // ---- the queue
 
 TEST_P(StoreTest, ClaimTakesTheOldestQueuedJobUnderALease) {

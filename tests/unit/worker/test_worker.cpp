@@ -33,6 +33,7 @@ TEST(Status, EveryErrorCodeMapsToItsGrpcCode) {
         {ErrorCode::kFailedPrecondition, grpc::StatusCode::FAILED_PRECONDITION},
         {ErrorCode::kInternal, grpc::StatusCode::INTERNAL},
         {ErrorCode::kDataLoss, grpc::StatusCode::DATA_LOSS},
+        {ErrorCode::kUnauthenticated, grpc::StatusCode::UNAUTHENTICATED},
     };
     for (const auto& [code, grpc_code] : table) {
         EXPECT_EQ(ToStatusCode(code), grpc_code) << ErrorCodeName(code);

@@ -84,6 +84,11 @@ std::string JobKey(const v1::JobSpec& spec) {
     return Sha256Hex(bytes);
 }
 
+std::string TenantJobKey(const v1::JobSpec& spec, const std::string& tenant) {
+    const std::string key = JobKey(spec);
+    return tenant.empty() ? key : Sha256Hex("tenant\n" + tenant + "\n" + key);
+}
+
 JobManager::JobManager(Store& store, ManagerOptions options, TransitionHook hook)
     : store_(store), options_(options), hook_(std::move(hook)), shared_(store.shared()) {
     if (options_.workers == 0) options_.workers = std::max(1u, std::thread::hardware_concurrency());
@@ -142,14 +147,14 @@ void JobManager::NotifyQueuePositions() {
     }
 }
 
-v1::Job JobManager::Submit(const v1::JobSpec& spec) {
-    if (shared_) return SharedSubmit(spec);
+v1::Job JobManager::Submit(const v1::JobSpec& spec, const std::string& tenant) {
+    if (shared_) return SharedSubmit(spec, tenant);
     ValidateSpec(spec);
     const JobKind& kind = KindOf(spec);
     for (const CloudInput& input : kind.Inputs(spec))
         if (!store_.FindCloud(input.id))
             throw Error(ErrorCode::kNotFound, input.field + ": cloud " + input.id + " not found (upload it first)");
-    const std::string key = JobKey(spec);
+    const std::string key = TenantJobKey(spec, tenant);
     std::lock_guard lock(mutex_);
     if (stopping_) throw Error(ErrorCode::kUnavailable, "the server is shutting down");
     if (auto reused = store_.FindReusable(key)) {
@@ -165,6 +170,7 @@ v1::Job JobManager::Submit(const v1::JobSpec& spec) {
     job.set_id(NewJobId());
     job.set_type(std::string(kind.Name()));
     *job.mutable_spec() = spec;
+    job.set_tenant(tenant);
     job.set_created_unix_ms(NowUnixMs());
     job.set_state(v1::QUEUED);
     store_.PutJob(job, key);  // persisted before it is acknowledged
@@ -185,8 +191,9 @@ std::optional<v1::Job> JobManager::Get(const std::string& id) const {
     return Current(id);
 }
 
-std::vector<v1::Job> JobManager::List(std::size_t limit, v1::JobState state) const {
-    std::vector<v1::Job> jobs = store_.ListJobs(limit ? limit : 100, state);
+std::vector<v1::Job> JobManager::List(std::size_t limit, v1::JobState state,
+                                      const std::string* tenant) const {
+    std::vector<v1::Job> jobs = store_.ListJobs(limit ? limit : 100, state, tenant);
     std::lock_guard lock(mutex_);
     for (v1::Job& j : jobs)
         if (auto it = running_.find(j.id()); it != running_.end()) j = it->second->job;  // live progress

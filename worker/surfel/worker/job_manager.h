@@ -67,13 +67,17 @@ public:
     /// Queues again what the store holds unfinished, then starts the workers.
     void Start();
 
-    /// Validates, checks the clouds exist (kNotFound), reuses an identical job, or persists and
-    /// queues a new one (kResourceExhausted when the queue is full).
-    v1::Job Submit(const v1::JobSpec& spec);
+    /// Validates, checks the clouds exist (kNotFound), reuses an identical job of the same
+    /// `tenant`, or persists and queues a new one owned by `tenant` (Job.tenant;
+    /// kResourceExhausted when the queue is full). Whether the tenant owns the clouds is the
+    /// caller's check (server/operations.cpp).
+    v1::Job Submit(const v1::JobSpec& spec, const std::string& tenant = "");
     std::optional<v1::Job> Get(const std::string& id) const;
     /// Cancels a queued or running job (kNotFound when unknown); returns the job as it is then.
     v1::Job Cancel(const std::string& id);
-    std::vector<v1::Job> List(std::size_t limit, v1::JobState state) const;
+    /// Newest first; only `*tenant`'s jobs unless `tenant` is null.
+    std::vector<v1::Job> List(std::size_t limit, v1::JobState state,
+                              const std::string* tenant = nullptr) const;
 
     /// Subscribes to a job's events; returns the job now (nullopt when unknown, then nothing is
     /// subscribed) and a token for Unsubscribe. Final jobs get no further events.
@@ -118,7 +122,7 @@ private:
         double fraction = -1;
     };
     void SharedStart();
-    v1::Job SharedSubmit(const v1::JobSpec& spec);
+    v1::Job SharedSubmit(const v1::JobSpec& spec, const std::string& tenant);
     v1::Job SharedCancel(const std::string& id);
     void SharedShutdown(std::int64_t grace_ms);
     void ClaimLoop(std::size_t index);
@@ -150,5 +154,8 @@ private:
 
 /// The key that makes two jobs identical: SHA-256 of the spec without its timeout.
 std::string JobKey(const v1::JobSpec& spec);
+/// The reuse key of a tenant's job: JobKey for the default tenant "", else SHA-256 of the
+/// tenant and JobKey, so that FindReusable never returns another tenant's job.
+std::string TenantJobKey(const v1::JobSpec& spec, const std::string& tenant);
 
 }  // namespace surfel::worker

@@ -241,14 +241,14 @@ void JobManager::MaintenanceLoop() {
 
 // ---- submit, cancel
 
-v1::Job JobManager::SharedSubmit(const v1::JobSpec& spec) {
+v1::Job JobManager::SharedSubmit(const v1::JobSpec& spec, const std::string& tenant) {
     ValidateSpec(spec);
     const JobKind& kind = KindOf(spec);
     for (const CloudInput& input : kind.Inputs(spec))
         if (!store_.FindCloud(input.id))
             throw Error(ErrorCode::kNotFound,
                         input.field + ": cloud " + input.id + " not found (upload it first)");
-    const std::string key = JobKey(spec);
+    const std::string key = TenantJobKey(spec, tenant);
     {
         std::lock_guard lock(mutex_);
         if (stopping_) throw Error(ErrorCode::kUnavailable, "the server is shutting down");
@@ -266,6 +266,7 @@ v1::Job JobManager::SharedSubmit(const v1::JobSpec& spec) {
     job.set_id(NewJobId());
     job.set_type(std::string(kind.Name()));
     *job.mutable_spec() = spec;
+    job.set_tenant(tenant);
     job.set_created_unix_ms(NowUnixMs());
     job.set_state(v1::QUEUED);
     store_.PutJob(job, key);  // persisted (committed) before it is acknowledged

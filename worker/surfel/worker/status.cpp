@@ -15,6 +15,7 @@ grpc::StatusCode ToStatusCode(ErrorCode code) {
         case ErrorCode::kFailedPrecondition: return grpc::StatusCode::FAILED_PRECONDITION;
         case ErrorCode::kInternal: return grpc::StatusCode::INTERNAL;
         case ErrorCode::kDataLoss: return grpc::StatusCode::DATA_LOSS;
+        case ErrorCode::kUnauthenticated: return grpc::StatusCode::UNAUTHENTICATED;
     }
     return grpc::StatusCode::INTERNAL;
 }
@@ -22,7 +23,8 @@ grpc::StatusCode ToStatusCode(ErrorCode code) {
 ErrorCode FromStatusCode(int code) {
     for (ErrorCode c : {ErrorCode::kInvalidArgument, ErrorCode::kNotFound, ErrorCode::kResourceExhausted,
                         ErrorCode::kCancelled, ErrorCode::kDeadlineExceeded, ErrorCode::kUnavailable,
-                        ErrorCode::kFailedPrecondition, ErrorCode::kDataLoss})
+                        ErrorCode::kFailedPrecondition, ErrorCode::kDataLoss,
+                        ErrorCode::kUnauthenticated})
         if (static_cast<int>(ToStatusCode(c)) == code) return c;
     return ErrorCode::kInternal;
 }

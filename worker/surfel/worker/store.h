@@ -78,8 +78,19 @@ public:
     virtual std::optional<v1::Cloud> FindCloud(const std::string& id) const = 0;
     /// Records a cloud whose bytes are already at CloudPath(id); no-op when it exists.
     virtual void PutCloud(const v1::Cloud& cloud) = 0;
-    /// Removes the record and the blob; false when unknown.
+    /// Removes the record and the bytes (and every tenant's ownership); false when unknown.
     bool DeleteCloud(const std::string& id);
+
+    // ---- tenants' clouds (docs/security.md): the bytes and the record are shared, each tenant
+    // owns its own entry in `cloud_owners`; "" is the default tenant (no auth).
+    /// Whether `tenant` owns cloud `id`.
+    virtual bool CloudOwned(const std::string& tenant, const std::string& id) const = 0;
+    /// Records that `tenant` owns cloud `id` ; no-op when it does (PutCloud records none).
+    virtual void AddCloudOwner(const std::string& tenant, const std::string& id) = 0;
+    /// Removes `tenant`'s ownership of `id`; false when it had none. `*remaining` (if not null)
+    /// gets how many owners are left (0: DeleteCloud may remove the bytes).
+    virtual bool RemoveCloudOwner(const std::string& tenant, const std::string& id,
+                                  std::size_t* remaining) = 0;
 
     // ---- jobs (stored as serialized surfel.v1.Job plus indexed columns)
     /// Insert or replace. On replace the key, creation time and order are kept (an empty key
@@ -88,8 +99,10 @@ public:
     virtual std::optional<v1::Job> FindJob(const std::string& id) const = 0;
     /// The newest job with this key that is queued, running or succeeded.
     virtual std::optional<v1::Job> FindReusable(const std::string& key) const = 0;
-    /// The newest `limit` jobs, newest first; all states when `state` is JOB_STATE_UNSPECIFIED.
-    virtual std::vector<v1::Job> ListJobs(std::size_t limit, v1::JobState state) const = 0;
+    /// The newest `limit` jobs, newest first; all states when `state` is JOB_STATE_UNSPECIFIED;
+    /// only those of `*tenant` (Job.tenant) unless `tenant` is null.
+    virtual std::vector<v1::Job> ListJobs(std::size_t limit, v1::JobState state,
+                                          const std::string* tenant = nullptr) const = 0;
     /// Jobs left QUEUED or RUNNING (by a crash or a shutdown), oldest first.
     virtual std::vector<v1::Job> Unfinished() const = 0;
 
@@ -165,10 +178,15 @@ public:
 
     std::optional<v1::Cloud> FindCloud(const std::string& id) const override;
     void PutCloud(const v1::Cloud& cloud) override;
+    bool CloudOwned(const std::string& tenant, const std::string& id) const override;
+    void AddCloudOwner(const std::string& tenant, const std::string& id) override;
+    bool RemoveCloudOwner(const std::string& tenant, const std::string& id,
+                          std::size_t* remaining) override;
     void PutJob(const v1::Job& job, const std::string& key) override;
     std::optional<v1::Job> FindJob(const std::string& id) const override;
     std::optional<v1::Job> FindReusable(const std::string& key) const override;
-    std::vector<v1::Job> ListJobs(std::size_t limit, v1::JobState state) const override;
+    std::vector<v1::Job> ListJobs(std::size_t limit, v1::JobState state,
+                                  const std::string* tenant = nullptr) const override;
     std::vector<v1::Job> Unfinished() const override;
     std::optional<LeasedJob> ClaimNext(const std::string& owner, std::int64_t lease_ms) override;
     bool Heartbeat(const std::string& job_id, const std::string& owner,

@@ -12,6 +12,9 @@ namespace {
 // earlier leases expired.
 // Version 3 adds the cancel request of the shared queue: any server sets it, the leaseholder
 // (on another machine) stops the job.
+// Version 4 adds tenants (docs/security.md): who owns which cloud (the bytes are shared, each
+// tenant owns its own record of them; rows before it belong to the default tenant ""), and the
+// tenant of each job (a copy of Job.tenant in the record, for listing).
 // Version 5 adds the index of large-object blobs (`--blobs postgres`, blob_store_postgres.cpp):
 // key ("clouds/<sha256>", "results/<job id>") -> large object oid, size, SHA-256. SQLite keeps
 // the same table, empty (it has no large objects), so that both dialects stay one schema.
@@ -43,6 +46,17 @@ constexpr std::array kMigrations{
     Migration{3, "job cancel requests",
               "ALTER TABLE jobs ADD COLUMN cancel_requested INTEGER NOT NULL DEFAULT 0;",
               "ALTER TABLE jobs ADD COLUMN cancel_requested INTEGER NOT NULL DEFAULT 0;"},
+    Migration{4, "tenants of clouds and jobs",
+              "CREATE TABLE cloud_owners (tenant TEXT NOT NULL, cloud_id TEXT NOT NULL, "
+              "PRIMARY KEY (tenant, cloud_id));"
+              "INSERT INTO cloud_owners (tenant, cloud_id) SELECT '', id FROM clouds;"
+              "ALTER TABLE jobs ADD COLUMN tenant TEXT NOT NULL DEFAULT '';"
+              "CREATE INDEX jobs_tenant_seq ON jobs(tenant, seq);",
+              "CREATE TABLE cloud_owners (tenant TEXT NOT NULL, cloud_id TEXT NOT NULL, "
+              "PRIMARY KEY (tenant, cloud_id));"
+              "INSERT INTO cloud_owners (tenant, cloud_id) SELECT '', id FROM clouds;"
+              "ALTER TABLE jobs ADD COLUMN tenant TEXT NOT NULL DEFAULT '';"
+              "CREATE INDEX jobs_tenant_seq ON jobs(tenant, seq);"},
     Migration{5, "large-object blobs",
               "CREATE TABLE IF NOT EXISTS blobs (key TEXT PRIMARY KEY, oid INTEGER NOT NULL, "
               "size INTEGER NOT NULL, sha256 TEXT NOT NULL, created_ms INTEGER NOT NULL);",

@@ -247,8 +247,39 @@ void PostgresStore::PutCloud(const v1::Cloud& cloud) {
 
 bool PostgresStore::DeleteCloudRecord(const std::string& id) {
     std::lock_guard lock(impl_->mutex);
+    impl_->Exec("DELETE FROM cloud_owners WHERE cloud_id = $1", Params().Text(id),
+                PGRES_COMMAND_OK);
     Result r = impl_->Exec("DELETE FROM clouds WHERE id = $1 RETURNING id", Params().Text(id));
     return PQntuples(r.get()) > 0;
+}
+
+bool PostgresStore::CloudOwned(const std::string& tenant, const std::string& id) const {
+    std::lock_guard lock(impl_->mutex);
+    Result r = impl_->Exec("SELECT 1 FROM cloud_owners WHERE tenant = $1 AND cloud_id = $2",
+                           Params().Text(tenant).Text(id));
+    return PQntuples(r.get()) > 0;
+}
+
+void PostgresStore::AddCloudOwner(const std::string& tenant, const std::string& id) {
+    std::lock_guard lock(impl_->mutex);
+    impl_->Exec(
+        "INSERT INTO cloud_owners (tenant, cloud_id) VALUES ($1, $2) ON CONFLICT DO NOTHING",
+        Params().Text(tenant).Text(id), PGRES_COMMAND_OK);
+}
+
+bool PostgresStore::RemoveCloudOwner(const std::string& tenant, const std::string& id,
+                                     std::size_t* remaining) {
+    std::lock_guard lock(impl_->mutex);
+    Result r = impl_->Exec(
+        "DELETE FROM cloud_owners WHERE tenant = $1 AND cloud_id = $2 RETURNING cloud_id",
+        Params().Text(tenant).Text(id));
+    const bool removed = PQntuples(r.get()) > 0;
+    if (remaining) {
+        Result n = impl_->Exec("SELECT COUNT(*)::bigint FROM cloud_owners WHERE cloud_id = $1",
+                               Params().Text(id));
+        *remaining = static_cast<std::size_t>(Int(n.get(), 0, 0));
+    }
+    return removed;
 }
 
 // ---- jobs
@@ -256,14 +287,16 @@ bool PostgresStore::DeleteCloudRecord(const std::string& id) {
 void PostgresStore::PutJob(const v1::Job& job, const std::string& key) {
     std::lock_guard lock(impl_->mutex);
     impl_->Exec(
-        "INSERT INTO jobs (id, key, state, created_ms, record) VALUES ($1, $2, $3, $4, $5) "
+        "INSERT INTO jobs (id, key, state, created_ms, record, tenant) "
+        "VALUES ($1, $2, $3, $4, $5, $6) "
         "ON CONFLICT (id) DO UPDATE SET state = excluded.state, record = excluded.record",
         Params()
             .Text(job.id())
             .Text(key)
             .Int(job.state())
             .Int(job.created_unix_ms())
-            .Bytes(job.SerializeAsString()),
+            .Bytes(job.SerializeAsString())
+            .Text(job.tenant()),
         PGRES_COMMAND_OK);
 }
 
@@ -284,14 +317,26 @@ std::optional<v1::Job> PostgresStore::FindReusable(const std::string& key) const
     return ParseJob(Bytes(r.get(), 0, 0));
 }
 
-std::vector<v1::Job> PostgresStore::ListJobs(std::size_t limit, v1::JobState state) const {
+std::vector<v1::Job> PostgresStore::ListJobs(std::size_t limit, v1::JobState state,
+                                             const std::string* tenant) const {
     std::lock_guard lock(impl_->mutex);
-    const bool all = state == v1::JOB_STATE_UNSPECIFIED;
-    Result r = all ? impl_->Exec("SELECT record FROM jobs ORDER BY seq DESC LIMIT $1",
-                                 Params().Int(static_cast<std::int64_t>(limit)))
-                   : impl_->Exec(
-                         "SELECT record FROM jobs WHERE state = $1 ORDER BY seq DESC LIMIT $2",
-                         Params().Int(state).Int(static_cast<std::int64_t>(limit)));
+    const bool any_state = state == v1::JOB_STATE_UNSPECIFIED;
+    std::string sql = "SELECT record FROM jobs";
+    Params params;
+    int n = 0;
+    if (!any_state || tenant) sql += " WHERE ";
+    if (!any_state) {
+        sql += "state = $" + std::to_string(++n);
+        params.Int(state);
+    }
+    if (!any_state && tenant) sql += " AND ";
+    if (tenant) {
+        sql += "tenant = $" + std::to_string(++n);
+        params.Text(*tenant);
+    }
+    sql += " ORDER BY seq DESC LIMIT $" + std::to_string(++n);
+    params.Int(static_cast<std::int64_t>(limit));
+    Result r = impl_->Exec(sql.c_str(), params);
     std::vector<v1::Job> out;
     for (int i = 0; i < PQntuples(r.get()); ++i) out.push_back(ParseJob(Bytes(r.get(), i, 0)));
     return out;

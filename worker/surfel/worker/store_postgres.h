@@ -26,10 +26,15 @@ public:
 
     std::optional<v1::Cloud> FindCloud(const std::string& id) const override;
     void PutCloud(const v1::Cloud& cloud) override;
+    bool CloudOwned(const std::string& tenant, const std::string& id) const override;
+    void AddCloudOwner(const std::string& tenant, const std::string& id) override;
+    bool RemoveCloudOwner(const std::string& tenant, const std::string& id,
+                          std::size_t* remaining) override;
     void PutJob(const v1::Job& job, const std::string& key) override;
     std::optional<v1::Job> FindJob(const std::string& id) const override;
     std::optional<v1::Job> FindReusable(const std::string& key) const override;
-    std::vector<v1::Job> ListJobs(std::size_t limit, v1::JobState state) const override;
+    std::vector<v1::Job> ListJobs(std::size_t limit, v1::JobState state,
+                                  const std::string* tenant = nullptr) const override;
     std::vector<v1::Job> Unfinished() const override;
     std::optional<LeasedJob> ClaimNext(const std::string& owner, std::int64_t lease_ms) override;
     bool Heartbeat(const std::string& job_id, const std::string& owner,

@@ -105,9 +105,48 @@ void SqliteStore::PutCloud(const v1::Cloud& cloud) {
 
 bool SqliteStore::DeleteCloudRecord(const std::string& id) {
     std::lock_guard lock(impl_->mutex);
+    SQLite::Transaction tx(impl_->db);
+    SQLite::Statement owners(impl_->db, "DELETE FROM cloud_owners WHERE cloud_id = ?");
+    owners.bind(1, id);
+    owners.exec();
     SQLite::Statement q(impl_->db, "DELETE FROM clouds WHERE id = ?");
     q.bind(1, id);
-    return q.exec() > 0;
+    const bool deleted = q.exec() > 0;
+    tx.commit();
+    return deleted;
+}
+
+bool SqliteStore::CloudOwned(const std::string& tenant, const std::string& id) const {
+    std::lock_guard lock(impl_->mutex);
+    SQLite::Statement q(impl_->db, "SELECT 1 FROM cloud_owners WHERE tenant = ? AND cloud_id = ?");
+    q.bind(1, tenant);
+    q.bind(2, id);
+    return q.executeStep();
+}
+
+void SqliteStore::AddCloudOwner(const std::string& tenant, const std::string& id) {
+    std::lock_guard lock(impl_->mutex);
+    SQLite::Statement q(impl_->db,
+                        "INSERT OR IGNORE INTO cloud_owners (tenant, cloud_id) VALUES (?, ?)");
+    q.bind(1, tenant);
+    q.bind(2, id);
+    q.exec();
+}
+
+bool SqliteStore::RemoveCloudOwner(const std::string& tenant, const std::string& id,
+                                   std::size_t* remaining) {
+    std::lock_guard lock(impl_->mutex);
+    SQLite::Statement q(impl_->db, "DELETE FROM cloud_owners WHERE tenant = ? AND cloud_id = ?");
+    q.bind(1, tenant);
+    q.bind(2, id);
+    const bool removed = q.exec() > 0;
+    if (remaining) {
+        SQLite::Statement n(impl_->db, "SELECT COUNT(*) FROM cloud_owners WHERE cloud_id = ?");
+        n.bind(1, id);
+        n.executeStep();
+        *remaining = static_cast<std::size_t>(n.getColumn(0).getInt64());
+    }
+    return removed;
 }
 
 // ---- jobs
@@ -116,8 +155,8 @@ void SqliteStore::PutJob(const v1::Job& job, const std::string& key) {
     std::lock_guard lock(impl_->mutex);
     SQLite::Statement q(
         impl_->db,
-        "INSERT INTO jobs (id, key, state, created_ms, seq, record) VALUES (?, ?, ?, ?, "
-        "(SELECT COALESCE(MAX(seq), 0) + 1 FROM jobs), ?) ON CONFLICT(id) DO UPDATE SET "
+        "INSERT INTO jobs (id, key, state, created_ms, seq, record, tenant) VALUES (?, ?, ?, ?, "
+        "(SELECT COALESCE(MAX(seq), 0) + 1 FROM jobs), ?, ?) ON CONFLICT(id) DO UPDATE SET "
         "state = excluded.state, record = excluded.record");
     const std::string blob = job.SerializeAsString();
     q.bind(1, job.id());
@@ -125,6 +164,7 @@ void SqliteStore::PutJob(const v1::Job& job, const std::string& key) {
     q.bind(3, static_cast<int>(job.state()));
     q.bind(4, static_cast<std::int64_t>(job.created_unix_ms()));
     BindRecord(q, 5, blob);
+    q.bind(6, job.tenant());
     q.exec();
 }
 
@@ -149,15 +189,21 @@ std::optional<v1::Job> SqliteStore::FindReusable(const std::string& key) const {
     return ParseJob(q.getColumn(0));
 }
 
-std::vector<v1::Job> SqliteStore::ListJobs(std::size_t limit, v1::JobState state) const {
+std::vector<v1::Job> SqliteStore::ListJobs(std::size_t limit, v1::JobState state,
+                                           const std::string* tenant) const {
     std::lock_guard lock(impl_->mutex);
     std::vector<v1::Job> out;
-    SQLite::Statement q(impl_->db,
-                        state == v1::JOB_STATE_UNSPECIFIED
-                            ? "SELECT record FROM jobs ORDER BY seq DESC LIMIT ?"
-                            : "SELECT record FROM jobs WHERE state = ? ORDER BY seq DESC LIMIT ?");
+    const bool any_state = state == v1::JOB_STATE_UNSPECIFIED;
+    std::string sql = "SELECT record FROM jobs";
+    if (!any_state || tenant) sql += " WHERE ";
+    if (!any_state) sql += "state = ?";
+    if (!any_state && tenant) sql += " AND ";
+    if (tenant) sql += "tenant = ?";
+    sql += " ORDER BY seq DESC LIMIT ?";
+    SQLite::Statement q(impl_->db, sql);
     int i = 1;
-    if (state != v1::JOB_STATE_UNSPECIFIED) q.bind(i++, static_cast<int>(state));
+    if (!any_state) q.bind(i++, static_cast<int>(state));
+    if (tenant) q.bind(i++, *tenant);
     q.bind(i, static_cast<std::int64_t>(limit));
     while (q.executeStep()) out.push_back(ParseJob(q.getColumn(0)));
     return out;
