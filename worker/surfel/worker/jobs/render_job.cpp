@@ -13,6 +13,9 @@ namespace {
 
 // ---- Memory estimate constants (docs/memory.md; checked by bench/memory_estimates.py) --------
 constexpr std::uint64_t kRenderBytesPerPoint = 600;  ///< AaSurface neighbour data + Embree BVH
+/// The image plugin (OpenImageIO and its libraries, opened by the first render) and Embree's
+/// and TBB's arenas: measured ~100 MiB on a 512x512 render of bunny (bench/results-memory.md).
+constexpr std::uint64_t kRenderFixedBytes = 96ull << 20;
 constexpr std::uint64_t kImageBytesPerPixel = 32;    ///< 8 float channels
 constexpr std::uint64_t kExrFloatBytesPerPixel = 32; ///< the codec's float copy; zip output below it
 constexpr std::uint64_t kExrHalfBytesPerPixel = 16;
@@ -164,7 +167,7 @@ public:
         if (job.format() == v1::RenderJob::EXR_HALF) encode_per_pixel = kExrHalfBytesPerPixel;
         if (job.format() == v1::RenderJob::PNG) encode_per_pixel = kPngBytesPerPixel;
         const CloudFacts& in = inputs[0];
-        const std::uint64_t work = kRenderBytesPerPoint * in.points + pixels * (kImageBytesPerPixel + encode_per_pixel);
+        const std::uint64_t work = kRenderFixedBytes + kRenderBytesPerPoint * in.points + pixels * (kImageBytesPerPixel + encode_per_pixel);
         return CloudBytes(in) + std::max(in.file_bytes, work);
     }
 

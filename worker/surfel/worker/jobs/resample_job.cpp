@@ -13,8 +13,8 @@ namespace surfel::worker {
 namespace {
 
 /// Memory estimate constants (docs/memory.md).
-constexpr std::uint64_t kResampleBytesPerInput = 400;
-constexpr std::uint64_t kResampleBytesPerOutput = 400;
+constexpr std::uint64_t kResampleBytesPerInput = 250;
+constexpr std::uint64_t kResampleBytesPerOutput = 250;
 
 // ---- proto -> ResampleOptions ----------------------------------------------------------------
 // Proto3's "0 / unset means the default" is resolved here; every default and limit is core's.
