@@ -138,7 +138,7 @@ protected:
 };
 
 TEST_F(MemoryServer, OversizedJobsAreRefusedAtSubmitAndASmallOneRuns) {
-    Start({"--max-job-memory", "256", "--max-points", "1000000"});
+    Start({"--max-job-memory", "128", "--max-points", "1000000"});
     client::ServiceClient c(server_->target());
     const std::string id = c.UploadFile((dir_ / "sphere.ply").string()).id();
 
@@ -148,11 +148,11 @@ TEST_F(MemoryServer, OversizedJobsAreRefusedAtSubmitAndASmallOneRuns) {
     render.mutable_render()->set_height(16384);
     std::string m = Refused(c, render, grpc::StatusCode::RESOURCE_EXHAUSTED);
     EXPECT_NE(m.find("render: job needs an estimated"), std::string::npos) << m;
-    EXPECT_NE(m.find("above --max-job-memory 256.0 MiB"), std::string::npos) << m;
+    EXPECT_NE(m.find("above --max-job-memory 128.0 MiB"), std::string::npos) << m;
 
     v1::JobSpec resample;
     resample.mutable_resample()->set_cloud_id(id);
-    resample.mutable_resample()->set_target(900'000);  // under --max-points, over the memory
+    resample.mutable_resample()->set_target(990'000);  // under --max-points, over the memory
     m = Refused(c, resample, grpc::StatusCode::RESOURCE_EXHAUSTED);
     EXPECT_NE(m.find("resample: job needs an estimated"), std::string::npos) << m;
 

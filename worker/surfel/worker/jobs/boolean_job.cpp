@@ -12,7 +12,7 @@ namespace surfel::worker {
 namespace {
 
 /// Memory estimate constants (docs/memory.md).
-constexpr std::uint64_t kBooleanBytesPerPoint = 600;
+constexpr std::uint64_t kBooleanBytesPerPoint = 150;
 /// position, normal, radius, crease, crease normal (3 doubles), source: as held and written.
 constexpr std::uint64_t kBooleanOutputBytesPerPoint = 12 + 12 + 4 + 8 + 24 + 8;
 

@@ -14,7 +14,7 @@ namespace {
 
 /// Memory estimate constants (docs/memory.md).
 constexpr std::uint64_t kResampleBytesPerInput = 250;
-constexpr std::uint64_t kResampleBytesPerOutput = 250;
+constexpr std::uint64_t kResampleBytesPerOutput = 100;
 
 // ---- proto -> ResampleOptions ----------------------------------------------------------------
 // Proto3's "0 / unset means the default" is resolved here; every default and limit is core's.

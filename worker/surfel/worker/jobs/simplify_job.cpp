@@ -12,7 +12,7 @@ namespace surfel::worker {
 namespace {
 
 /// Memory estimate: bytes per input point of the simplification's own data (docs/memory.md).
-constexpr std::uint64_t kSimplifyBytesPerPoint = 200;
+constexpr std::uint64_t kSimplifyBytesPerPoint = 80;
 
 // ---- proto -> SimplifyOptions ----------------------------------------------------------------
 // Proto3's "0 / unset means the default" is resolved here; every default and limit is core's.
