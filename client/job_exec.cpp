@@ -55,7 +55,10 @@ nlohmann::json ExecuteJob(v1::JobSpec spec, const std::vector<std::string>& inpu
     if (job_flags.server.empty()) {
         const worker::JobOutput out = worker::RunJob(
             spec, [](const std::string& path) { return std::make_shared<const PointCloud>(LoadCloud(path)); },
-            MakeProgressBar(label, flags));
+            MakeProgressBar(label, flags), [&](std::uint64_t estimate) {
+                // In-process the limit is what the machine has now (docs/memory.md).
+                worker::CheckJobMemory(spec, estimate, worker::AvailableMemory(), "the memory available");
+            });
         WriteFileBytes(output, out.bytes);
         nlohmann::json report = out.report;
         report["output"] = output;

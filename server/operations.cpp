@@ -121,7 +121,13 @@ std::vector<v1::JobEvent> Operations::FinalEvents(const v1::Job& job) {
 
 bool Operations::ClaimUpload(const std::string& id) {
     std::lock_guard lock(uploads_mutex_);
-    return active_uploads_.insert(id).second;
+    if (active_uploads_.count(id)) return false;
+    if (active_uploads_.size() >= limits_.max_uploads)
+        throw Error(ErrorCode::kResourceExhausted,
+                    "upload " + id + ": " + std::to_string(active_uploads_.size()) +
+                        " uploads are in progress, the most --max-uploads allows; retry later");
+    active_uploads_.insert(id);
+    return true;
 }
 
 void Operations::ReleaseUpload(const std::string& id) {

@@ -26,6 +26,7 @@ struct ServiceLimits {
     std::uint64_t max_points = 50'000'000;  ///< Clouds with more points -> RESOURCE_EXHAUSTED.
     std::size_t max_chunk_bytes = 1 << 20;  ///< One UploadRequest's data at most.
     std::size_t download_chunk_bytes = 256 << 10;  ///< Result chunks in Watch, Download and HTTP.
+    std::size_t max_uploads = 64;  ///< Upload calls in progress at once; more -> RESOURCE_EXHAUSTED.
 };
 
 /// A succeeded job's result file.
@@ -73,7 +74,8 @@ class Operations {
     /// The events a watcher of an already final job gets: its state, then finished or failed.
     static std::vector<v1::JobEvent> FinalEvents(const v1::Job& job);
 
-    /// Claims an upload id for one call at a time; false when another call holds it.
+    /// Claims an upload id for one call at a time; false when another call holds it. Throws
+    /// Error(kResourceExhausted) when limits().max_uploads calls hold one already.
     bool ClaimUpload(const std::string& id);
     void ReleaseUpload(const std::string& id);
 

@@ -26,6 +26,7 @@
 #include "surfel/base/error.h"
 #include "surfel/io/image.h"
 #include "surfel/worker/job_kind.h"
+#include "surfel/worker/memory.h"
 #include "surfel/worker/store_postgres.h"
 
 namespace {
@@ -80,6 +81,8 @@ struct Flags {
     std::size_t ingest_queue = 64;
     double max_upload_mb = 2048;
     std::uint64_t max_points = 50'000'000;
+    double max_job_memory_mb = -1;  // -1: 3/4 of the memory available at start
+    std::size_t max_uploads = 64;
     std::string metrics;
     std::string port_file;
     double grace_s = 10;
@@ -176,6 +179,16 @@ int main(int argc, char** argv) {
         ->check(CLI::Range(1, 100000));
     app.add_option("--max-upload-mb", f.max_upload_mb, "Largest upload in MiB")->default_val(2048)->check(CLI::PositiveNumber);
     app.add_option("--max-points", f.max_points, "Largest accepted point count")->default_val(50'000'000);
+    app.add_option("--max-job-memory", f.max_job_memory_mb,
+                   "Largest memory estimate of a job in MiB (docs/memory.md): above it, or above what running "
+                   "jobs leave of it, Submit answers RESOURCE_EXHAUSTED; 0 = no limit. Default: 3/4 of the "
+                   "memory available at start (MemAvailable, or the cgroup's memory.max - memory.current)")
+        ->check(CLI::NonNegativeNumber);
+    app.add_option("--max-uploads", f.max_uploads,
+                   "Upload calls in progress at once (gRPC and HTTP) before another answers RESOURCE_EXHAUSTED "
+                   "(HTTP 429); each holds at most one chunk and, while parsed, its file and cloud")
+        ->default_val(64)
+        ->check(CLI::Range(1, 100000));
     app.add_option("--metrics", f.metrics, "Serve Prometheus metrics at http://ADDR/metrics, e.g. 127.0.0.1:9464");
     app.add_option("--port-file", f.port_file, "Write the bound port to this file once serving (for scripts)");
     app.add_option("--grace", f.grace_s, "Seconds running jobs get to finish on SIGTERM before they are requeued")
@@ -263,11 +276,16 @@ int main(int argc, char** argv) {
         mo.max_attempts = f.max_attempts;
         mo.max_queued = f.max_queued;
         mo.max_points = f.max_points;
+        mo.max_job_memory = f.max_job_memory_mb < 0
+                                ? worker::DefaultMaxJobMemory()
+                                : static_cast<std::uint64_t>(f.max_job_memory_mb * 1024 * 1024);
+        spdlog::info("--max-job-memory {}", mo.max_job_memory ? worker::MiB(mo.max_job_memory) : "none");
         worker::JobManager jobs(store, mo,
                                 [&](const v1::Job& job, v1::JobState from) { metrics.OnTransition(job, from); });
         server::ServiceLimits limits;
         limits.max_upload_bytes = static_cast<std::uint64_t>(f.max_upload_mb * 1024 * 1024);
         limits.max_points = f.max_points;
+        limits.max_uploads = f.max_uploads;
         // Declared before the service and the server: it outlives both, and runs its queue dry
         // while server->Shutdown waits for the upload calls its tasks finish.
         server::Executor ingest(f.ingest_threads, f.ingest_queue);

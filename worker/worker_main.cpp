@@ -22,6 +22,7 @@ int main(int argc, char** argv) {
     double lease_s = 30, grace_s = 10;
     int max_attempts = 3;
     std::uint64_t max_points = 50'000'000;
+    double max_job_memory_mb = -1;  // -1: 3/4 of the memory available at start
     bool json_logs = false;
     app.add_option("--store", store_url, "The shared store: postgres://user@host:port/db")
         ->required();
@@ -46,6 +47,11 @@ int main(int argc, char** argv) {
         ->check(CLI::NonNegativeNumber);
     app.add_option("--max-points", max_points, "Largest point count a job may load")
         ->default_val(50'000'000);
+    app.add_option("--max-job-memory", max_job_memory_mb,
+                   "Largest memory estimate in MiB of a job run here (docs/memory.md); a claimed job above "
+                   "it fails with RESOURCE_EXHAUSTED before its work; 0 = no limit. Default: 3/4 of the "
+                   "memory available at start")
+        ->check(CLI::NonNegativeNumber);
     app.add_option("--name", name, "Lease owner name (default <host>:<pid>)");
     app.add_option("--log-level", log_level, "trace, debug, info, warn, error")
         ->default_val("info")
@@ -87,6 +93,9 @@ int main(int argc, char** argv) {
         mo.max_attempts = max_attempts;
         mo.max_points = max_points;
         mo.worker_name = name;
+        mo.max_job_memory = max_job_memory_mb < 0
+                                ? worker::DefaultMaxJobMemory()
+                                : static_cast<std::uint64_t>(max_job_memory_mb * 1024 * 1024);
         worker::JobManager jobs(*store, mo);
         jobs.Start();
         spdlog::info("surfel-worker: {} threads on {} (blobs {})", threads,

@@ -67,7 +67,8 @@ void ValidateSpec(const v1::JobSpec& spec) {
     kind.Validate(spec);
 }
 
-JobOutput RunJob(const v1::JobSpec& spec, const CloudLoader& load, const ProgressFn& progress) {
+JobOutput RunJob(const v1::JobSpec& spec, const CloudLoader& load, const ProgressFn& progress,
+                 const MemoryAdmit& admit) {
     ValidateSpec(spec);
     const JobKind& kind = KindOf(spec);
     Clouds clouds;
@@ -78,7 +79,14 @@ JobOutput RunJob(const v1::JobSpec& spec, const CloudLoader& load, const Progres
         SURFEL_CHECK(cloud != nullptr, "the cloud loader returned nothing for " << input.id);
         clouds.push_back(cloud);
     }
-    return kind.Run(spec, clouds, progress);
+    // The estimate from the loaded clouds (the file's size taken as 0: it is freed by now).
+    std::vector<CloudFacts> facts;
+    for (const auto& cloud : clouds) facts.push_back(FactsOf(*cloud, 0));
+    const std::uint64_t estimate = kind.EstimateMemory(spec, facts);
+    if (admit) admit(estimate);
+    JobOutput out = kind.Run(spec, clouds, progress);
+    out.report["memory_estimate_bytes"] = estimate;
+    return out;
 }
 
 // ---- Adapters shared by the kinds ---------------------------------------------------------------

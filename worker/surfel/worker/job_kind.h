@@ -20,6 +20,7 @@
 #include "surfel/base/progress.h"
 #include "surfel/base/validate.h"  // WithFieldPrefix, used by every kind
 #include "surfel/v1/surfel.pb.h"
+#include "surfel/worker/memory.h"
 
 namespace surfel::worker {
 
@@ -71,6 +72,11 @@ public:
     virtual std::pair<std::string, std::string> ResultType(const v1::JobSpec& spec) const = 0;
     /// Runs a validated `spec` on its clouds (in Inputs order).
     virtual JobOutput Run(const v1::JobSpec& spec, const Clouds& clouds, const ProgressFn& progress) const = 0;
+    /// Peak memory (bytes, beyond the process's baseline) a run of the validated `spec` on clouds
+    /// with these facts (InputCount() of them, in Inputs order) needs: loading, the algorithm's
+    /// data structures and the encoded result. Derived from the data structures the kind's core
+    /// code allocates; docs/memory.md lists the terms and the measured check.
+    virtual std::uint64_t EstimateMemory(const v1::JobSpec& spec, std::span<const CloudFacts> inputs) const = 0;
     /// A small valid spec of this kind with empty cloud ids, quick to run on a few thousand points
     /// (the parameterised tests run it for every kind).
     virtual v1::JobSpec Example() const = 0;
@@ -92,10 +98,16 @@ std::string JobKindNames();
 /// options. Throws Error(kInvalidArgument) naming the field.
 void ValidateSpec(const v1::JobSpec& spec);
 
-/// Validates `spec`, loads its clouds through `load` and runs it. Errors are surfel::Error
+/// Called by RunJob with the job's memory estimate once its clouds are loaded, before the work;
+/// throws (Error(kResourceExhausted), see CheckJobMemory) to refuse the job.
+using MemoryAdmit = std::function<void(std::uint64_t estimate)>;
+
+/// Validates `spec`, loads its clouds through `load`, asks `admit` (when given) about its memory
+/// estimate and runs it; the report gets "memory_estimate_bytes". Errors are surfel::Error
 /// (kInvalidArgument for bad options or input, kNotFound for an unknown cloud, kCancelled when
-/// `progress` asks to stop).
-JobOutput RunJob(const v1::JobSpec& spec, const CloudLoader& load, const ProgressFn& progress = {});
+/// `progress` asks to stop, what `admit` throws).
+JobOutput RunJob(const v1::JobSpec& spec, const CloudLoader& load, const ProgressFn& progress = {},
+                 const MemoryAdmit& admit = {});
 
 /// A point or direction as the proto's Vec3, and back.
 v1::Vec3 ToProto(const Vec3d& v);

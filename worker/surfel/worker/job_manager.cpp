@@ -112,6 +112,11 @@ void JobManager::Start() {
                 Transition(job, v1::QUEUED);
             }
             queue_.push_back(job.id());
+            try {
+                estimates_[job.id()] = EstimateFromRecords(job.spec());
+            } catch (const std::exception& e) {  // its cloud is gone: the run fails and says so
+                estimates_[job.id()] = 0;
+            }
         }
         if (!queue_.empty()) spdlog::info("{} unfinished jobs queued again", queue_.size());
     }
@@ -147,13 +152,28 @@ void JobManager::NotifyQueuePositions() {
     }
 }
 
+std::uint64_t JobManager::EstimateFromRecords(const v1::JobSpec& spec) const {
+    std::vector<CloudFacts> facts;
+    for (const CloudInput& input : KindOf(spec).Inputs(spec)) {
+        const std::optional<v1::Cloud> cloud = store_.FindCloud(input.id);
+        if (!cloud)
+            throw Error(ErrorCode::kNotFound, input.field + ": cloud " + input.id + " not found (upload it first)");
+        facts.push_back(FactsOf(*cloud));
+    }
+    return EstimateJobMemory(spec, facts);
+}
+
+std::uint64_t JobManager::MemoryInUse() const {
+    std::lock_guard lock(mutex_);
+    return memory_in_use_;
+}
+
 v1::Job JobManager::Submit(const v1::JobSpec& spec, const std::string& tenant) {
     if (shared_) return SharedSubmit(spec, tenant);
     ValidateSpec(spec);
     const JobKind& kind = KindOf(spec);
-    for (const CloudInput& input : kind.Inputs(spec))
-        if (!store_.FindCloud(input.id))
-            throw Error(ErrorCode::kNotFound, input.field + ": cloud " + input.id + " not found (upload it first)");
+    CheckOutputPoints(spec, options_.max_points);
+    const std::uint64_t estimate = EstimateFromRecords(spec);
     const std::string key = TenantJobKey(spec, tenant);
     std::lock_guard lock(mutex_);
     if (stopping_) throw Error(ErrorCode::kUnavailable, "the server is shutting down");
@@ -163,6 +183,7 @@ v1::Job JobManager::Submit(const v1::JobSpec& spec, const std::string& tenant) {
         spdlog::info("job {}: reused for an identical submission", reused->id());
         return *reused;
     }
+    CheckJobMemory(spec, estimate, options_.max_job_memory, "--max-job-memory", memory_in_use_);
     if (queue_.size() >= options_.max_queued)
         throw Error(ErrorCode::kResourceExhausted,
                     "job queue is full (" + std::to_string(queue_.size()) + " jobs waiting); retry later");
@@ -176,7 +197,9 @@ v1::Job JobManager::Submit(const v1::JobSpec& spec, const std::string& tenant) {
     store_.PutJob(job, key);  // persisted before it is acknowledged
     if (hook_) hook_(job, v1::JOB_STATE_UNSPECIFIED);
     queue_.push_back(job.id());
-    spdlog::info("job {}: {} queued at position {}", job.id(), job.type(), queue_.size() - 1);
+    estimates_[job.id()] = estimate;
+    spdlog::info("job {}: {} queued at position {} (memory estimate {})", job.id(), job.type(), queue_.size() - 1,
+                 MiB(estimate));
     wake_.notify_one();
     return job;
 }
@@ -212,6 +235,8 @@ v1::Job JobManager::Cancel(const std::string& id) {
     if (!job) throw Error(ErrorCode::kNotFound, "job " + id + " not found");
     if (job->state() == v1::QUEUED) {
         queue_.erase(std::remove(queue_.begin(), queue_.end(), id), queue_.end());
+        estimates_.erase(id);
+        wake_.notify_all();  // the next job may fit now
         job->set_status_code(grpc::StatusCode::CANCELLED);
         job->set_status_message("cancelled while queued");
         Transition(*job, v1::CANCELLED);
@@ -275,17 +300,34 @@ std::size_t JobManager::Running() const {
 }
 
 void JobManager::WorkerLoop() {
+    // The queue's head starts when its estimate fits in what the running jobs leave of
+    // max_job_memory (or nothing runs): FIFO, so a large job is not starved by small ones.
+    auto fits = [&] {
+        if (queue_.empty()) return false;
+        if (options_.max_job_memory == 0 || memory_in_use_ == 0) return true;
+        const std::uint64_t estimate = estimates_[queue_.front()];
+        return memory_in_use_ + estimate <= options_.max_job_memory;
+    };
     for (;;) {
         std::string id;
+        std::uint64_t estimate = 0;
         {
             std::unique_lock lock(mutex_);
-            wake_.wait(lock, [&] { return stopping_ || !queue_.empty(); });
+            wake_.wait(lock, [&] { return stopping_ || fits(); });
             if (stopping_) return;
             id = queue_.front();
             queue_.pop_front();
+            estimate = estimates_[id];
+            memory_in_use_ += estimate;
             NotifyQueuePositions();
         }
         Execute(id);
+        {
+            std::lock_guard lock(mutex_);
+            memory_in_use_ -= estimate;
+            estimates_.erase(id);
+        }
+        wake_.notify_all();
     }
 }
 

@@ -46,6 +46,12 @@ struct ManagerOptions {
     /// Shared queue: how often the tables are read when no hint arrived (ms): idle claims,
     /// cancel flags of running jobs, watched jobs run elsewhere.
     std::int64_t poll_ms = 250;
+    /// Largest memory estimate (bytes, JobKind::EstimateMemory) a job may have; 0 = no limit.
+    /// Single node: Submit refuses (kResourceExhausted) a job above it, or above what the
+    /// running jobs' estimates leave of it; a queued job starts only when its estimate fits in
+    /// what is left (docs/memory.md). Shared queue: Submit refuses above it, and a claimed job
+    /// above the claiming process's limit fails with RESOURCE_EXHAUSTED before its work.
+    std::uint64_t max_job_memory = 0;
     /// Shared queue: the lease owner's prefix (default "<host>:<pid>"); thread i appends "/i".
     std::string worker_name;
 };
@@ -86,6 +92,8 @@ public:
 
     std::size_t QueueDepth() const;
     std::size_t Running() const;
+    /// Sum of the memory estimates of the jobs running here (bytes).
+    std::uint64_t MemoryInUse() const;
 
     /// Stops taking jobs off the queue; running ones get `grace_ms` to finish, then are
     /// interrupted and left QUEUED in the store, to run again after a restart (shared queue:
@@ -111,6 +119,10 @@ private:
     std::condition_variable wake_;
     std::deque<std::string> queue_;
     std::map<std::string, std::shared_ptr<RunState>> running_;
+    std::map<std::string, std::uint64_t> estimates_;  ///< queued and running jobs (single node)
+    std::uint64_t memory_in_use_ = 0;                  ///< estimates of the running jobs
+    /// The memory estimate of `spec` from its clouds' stored records (kNotFound naming the field).
+    std::uint64_t EstimateFromRecords(const v1::JobSpec& spec) const;
     std::map<std::string, std::map<std::uint64_t, JobListener>> listeners_;
     std::uint64_t next_token_ = 1;
     bool stopping_ = false;

@@ -244,10 +244,8 @@ void JobManager::MaintenanceLoop() {
 v1::Job JobManager::SharedSubmit(const v1::JobSpec& spec, const std::string& tenant) {
     ValidateSpec(spec);
     const JobKind& kind = KindOf(spec);
-    for (const CloudInput& input : kind.Inputs(spec))
-        if (!store_.FindCloud(input.id))
-            throw Error(ErrorCode::kNotFound,
-                        input.field + ": cloud " + input.id + " not found (upload it first)");
+    CheckOutputPoints(spec, options_.max_points);
+    const std::uint64_t estimate = EstimateFromRecords(spec);
     const std::string key = TenantJobKey(spec, tenant);
     {
         std::lock_guard lock(mutex_);
@@ -258,6 +256,7 @@ v1::Job JobManager::SharedSubmit(const v1::JobSpec& spec, const std::string& ten
         spdlog::info("job {}: reused for an identical submission", reused->id());
         return *reused;
     }
+    CheckJobMemory(spec, estimate, options_.max_job_memory, "--max-job-memory");
     const std::size_t queued = store_.CountQueued();
     if (queued >= options_.max_queued)
         throw Error(ErrorCode::kResourceExhausted,
@@ -418,7 +417,10 @@ void JobManager::ExecuteLeased(LeasedJob leased) {
     try {
         const JobOutput out = RunJob(
             run->job.spec(), [&](const std::string& cloud_id) { return LoadCloud(cloud_id); },
-            progress);
+            progress, [&](std::uint64_t estimate) {
+                CheckJobMemory(run->job.spec(), estimate, options_.max_job_memory,
+                               "--max-job-memory of " + run->owner);
+            });
         if (run->lost) throw Error(ErrorCode::kCancelled, "lease lost");
         // Durable and atomic (dir: temp + fsync + rename; large objects: one transaction):
         // complete before any record names it. A second run of the same

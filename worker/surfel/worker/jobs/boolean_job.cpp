@@ -1,6 +1,8 @@
 // The boolean job: union, intersection and differences of two point-sampled solids
 // (core/surfel/boolean). The one job with two input clouds.
 
+#include <algorithm>
+
 #include "surfel/base/error.h"
 #include "surfel/boolean/boolean.h"
 #include "surfel/io/ply.h"
@@ -8,6 +10,11 @@
 
 namespace surfel::worker {
 namespace {
+
+/// Memory estimate constants (docs/memory.md).
+constexpr std::uint64_t kBooleanBytesPerPoint = 150;
+/// position, normal, radius, crease, crease normal (3 doubles), source: as held and written.
+constexpr std::uint64_t kBooleanOutputBytesPerPoint = 12 + 12 + 4 + 8 + 24 + 8;
 
 // ---- proto -> BooleanOp, BooleanOptions --------------------------------------------------------
 // Proto3's "0 / unset means the default" is resolved here; every default and limit is core's.
@@ -125,6 +132,20 @@ public:
         out.points = r.cloud.size();
         out.time_ms = r.report.time_ms;
         return out;
+    }
+
+    /// Both clouds; per input point its kd-tree, normals, the inside/outside classification and
+    /// the upsampling near the curve (kBooleanBytesPerPoint); the output (at most both inputs
+    /// plus the curve) as a cloud with its crease attributes and as PLY bytes.
+    std::uint64_t EstimateMemory(const v1::JobSpec&, std::span<const CloudFacts> inputs) const override {
+        std::uint64_t clouds = 0, points = 0, file = 0;
+        for (const CloudFacts& in : inputs) {
+            clouds += CloudBytes(in);
+            points += in.points;
+            file = std::max(file, in.file_bytes);
+        }
+        const std::uint64_t work = kBooleanBytesPerPoint * points + 2 * points * kBooleanOutputBytesPerPoint;
+        return clouds + std::max(file, work);
     }
 
     v1::JobSpec Example() const override {

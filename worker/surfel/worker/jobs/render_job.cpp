@@ -1,5 +1,7 @@
 // The render job: a ray-traced image of the Adamson-Alexa surface (core/surfel/render).
 
+#include <algorithm>
+
 #include "surfel/base/error.h"
 #include "surfel/base/validate.h"
 #include "surfel/io/image.h"
@@ -8,6 +10,16 @@
 
 namespace surfel::worker {
 namespace {
+
+// ---- Memory estimate constants (docs/memory.md; checked by bench/memory_estimates.py) --------
+constexpr std::uint64_t kRenderBytesPerPoint = 600;  ///< AaSurface neighbour data + Embree BVH
+/// The image plugin (OpenImageIO and its libraries, opened by the first render) and Embree's
+/// and TBB's arenas: measured ~100 MiB on a 512x512 render of bunny (bench/results-memory.md).
+constexpr std::uint64_t kRenderFixedBytes = 96ull << 20;
+constexpr std::uint64_t kImageBytesPerPixel = 32;    ///< 8 float channels
+constexpr std::uint64_t kExrFloatBytesPerPixel = 32; ///< the codec's float copy; zip output below it
+constexpr std::uint64_t kExrHalfBytesPerPixel = 16;
+constexpr std::uint64_t kPngBytesPerPixel = 6;       ///< 8-bit RGB buffer + the PNG file
 
 [[noreturn]] void Bad(const std::string& field, const std::string& what) { InvalidField("render." + field, what); }
 
@@ -140,6 +152,23 @@ public:
         out.points = cloud.size();
         out.time_ms = r.stats.time_ms;
         return out;
+    }
+
+    /// The cloud; per point the surface's neighbour data and the BVH over its balls
+    /// (kRenderBytesPerPoint); the image, 8 float channels a pixel; the encoded file (EXR: up to
+    /// the raw channels plus the codec's copy; PNG: the 8-bit RGB buffer and the file).
+    std::uint64_t EstimateMemory(const v1::JobSpec& spec, std::span<const CloudFacts> inputs) const override {
+        const v1::RenderJob& job = spec.render();
+        const RenderOptions defaults;
+        const std::uint64_t w = job.width() ? job.width() : defaults.camera.width;
+        const std::uint64_t h = job.height() ? job.height() : defaults.camera.height;
+        const std::uint64_t pixels = w * h;
+        std::uint64_t encode_per_pixel = kExrFloatBytesPerPixel;
+        if (job.format() == v1::RenderJob::EXR_HALF) encode_per_pixel = kExrHalfBytesPerPixel;
+        if (job.format() == v1::RenderJob::PNG) encode_per_pixel = kPngBytesPerPixel;
+        const CloudFacts& in = inputs[0];
+        const std::uint64_t work = kRenderFixedBytes + kRenderBytesPerPoint * in.points + pixels * (kImageBytesPerPixel + encode_per_pixel);
+        return CloudBytes(in) + std::max(in.file_bytes, work);
     }
 
     v1::JobSpec Example() const override {

@@ -1,6 +1,8 @@
 // The resample job: particle resampling, MLS smoothing and densification by splitting on the
 // MLS surface (core/surfel/resample).
 
+#include <algorithm>
+
 #include "surfel/base/error.h"
 #include "surfel/io/ply.h"
 #include "surfel/resample/resample.h"
@@ -9,6 +11,10 @@
 
 namespace surfel::worker {
 namespace {
+
+/// Memory estimate constants (docs/memory.md).
+constexpr std::uint64_t kResampleBytesPerInput = 250;
+constexpr std::uint64_t kResampleBytesPerOutput = 100;
 
 // ---- proto -> ResampleOptions ----------------------------------------------------------------
 // Proto3's "0 / unset means the default" is resolved here; every default and limit is core's.
@@ -102,6 +108,23 @@ public:
         out.points = r.cloud.size();
         out.time_ms = r.report.time_ms;
         return out;
+    }
+
+    /// The cloud; per input point its kd-tree and local frames (kResampleBytesPerInput); per
+    /// output point the particle, its neighbour list and grid cell (kResampleBytesPerOutput),
+    /// the output cloud and its PLY bytes. The output count: `target`, or from `spacing` over
+    /// the bounding box's area (PointsAtSpacing), or the input's (mls).
+    std::uint64_t EstimateMemory(const v1::JobSpec& spec, std::span<const CloudFacts> inputs) const override {
+        const v1::ResampleJob& job = spec.resample();
+        const CloudFacts& in = inputs[0];
+        std::uint64_t out = in.points;
+        if (job.target()) out = job.target();
+        else if (job.spacing() > 0) out = PointsAtSpacing(in.extent, job.spacing());
+        if (job.keep_input()) out = std::max(out, in.points);
+        const std::uint64_t out_bytes = PointBytes(in.attributes) + 12;  // normals always written
+        const std::uint64_t work =
+            kResampleBytesPerInput * in.points + out * (kResampleBytesPerOutput + 2 * out_bytes);
+        return CloudBytes(in) + std::max(in.file_bytes, work);
     }
 
     v1::JobSpec Example() const override {

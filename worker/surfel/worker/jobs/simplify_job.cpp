@@ -1,5 +1,7 @@
 // The simplify job: point-cloud simplification (core/surfel/simplify).
 
+#include <algorithm>
+
 #include "surfel/base/error.h"
 #include "surfel/io/ply.h"
 #include "surfel/simplify/simplify.h"
@@ -8,6 +10,9 @@
 
 namespace surfel::worker {
 namespace {
+
+/// Memory estimate: bytes per input point of the simplification's own data (docs/memory.md).
+constexpr std::uint64_t kSimplifyBytesPerPoint = 80;
 
 // ---- proto -> SimplifyOptions ----------------------------------------------------------------
 // Proto3's "0 / unset means the default" is resolved here; every default and limit is core's.
@@ -87,6 +92,16 @@ public:
         out.points = r.cloud.size();
         out.time_ms = r.report.time_ms;
         return out;
+    }
+
+    /// The cloud; per input point the neighbour graph, covariances and the method's clusters or
+    /// heap (kSimplifyBytesPerPoint); the output cloud and its PLY bytes.
+    std::uint64_t EstimateMemory(const v1::JobSpec& spec, std::span<const CloudFacts> inputs) const override {
+        const CloudFacts& in = inputs[0];
+        const std::uint64_t out = spec.simplify().target() ? std::min<std::uint64_t>(spec.simplify().target(), in.points)
+                                                           : in.points;
+        const std::uint64_t work = kSimplifyBytesPerPoint * in.points + 2 * out * PointBytes(in.attributes);
+        return CloudBytes(in) + std::max(in.file_bytes, work);
     }
 
     v1::JobSpec Example() const override {
