@@ -57,11 +57,12 @@ public:
     virtual std::string_view Name() const = 0;
     /// What a running job of this kind is doing ("rendering"), for progress events.
     virtual std::string_view Stage() const = 0;
-    /// Number of input clouds (1 for render and simplify, 2 for a boolean).
-    virtual std::size_t InputCount() const = 0;
-    /// The clouds `spec` reads, InputCount() of them, with their field paths.
+    /// Number of input clouds `spec` reads (1 for render and simplify, 2 for a boolean and for a
+    /// CSG render, whose spec sets render.csg_op).
+    virtual std::size_t InputCount(const v1::JobSpec& spec) const = 0;
+    /// The clouds `spec` reads, InputCount(spec) of them, with their field paths.
     virtual std::vector<CloudInput> Inputs(const v1::JobSpec& spec) const = 0;
-    /// Sets input `index` (0 <= index < InputCount()) of `spec` to `cloud_id`.
+    /// Sets input `index` (0 <= index < InputCount(spec)) of `spec` to `cloud_id`.
     virtual void SetInput(v1::JobSpec& spec, std::size_t index, const std::string& cloud_id) const = 0;
     /// Checks every option: proto -> core Options -> Options::Validate(), with the field path
     /// prefixed ("render.width: must lie in 1..16384, got 0"). Throws Error(kInvalidArgument).
