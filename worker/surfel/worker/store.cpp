@@ -36,8 +36,10 @@ std::string Store::UploadPath(const std::string& id) const {
 
 bool Store::DeleteCloud(const std::string& id) {
     const bool existed = DeleteCloudRecord(id);
+    // Only a cloud's file: an empty id would name the clouds folder itself, and removing it (when
+    // empty) made every later upload fail (found by the API fuzzer).
     std::error_code ec;
-    fs::remove(CloudPath(id), ec);
+    if (fs::is_regular_file(CloudPath(id), ec)) fs::remove(CloudPath(id), ec);
     return existed;
 }
 
