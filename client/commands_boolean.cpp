@@ -4,6 +4,7 @@
 
 #include "cli_common.h"
 #include "job_exec.h"
+#include "placement.h"
 #include "surfel/base/error.h"
 #include "surfel/boolean/boolean.h"
 #include "surfel/io/cloud_io.h"
@@ -14,8 +15,7 @@ namespace {
 
 struct BooleanArgs {
     std::string a, b, output, op;
-    std::string translate, rotate;
-    double scale = 1.0;
+    PlacementFlags place;
     bool ascii = false;
     CommonFlags flags;
     JobFlags job;
@@ -33,27 +33,39 @@ void RunBoolean(BooleanArgs& a) {
     v1::JobSpec spec;
     v1::BooleanJob& job = *spec.mutable_boolean();
     job.set_op(ParseProtoEnum("--op", a.op, &v1::BooleanJob::Op_Parse));
-    v1::Similarity& t = *job.mutable_transform_b();
-    if (!a.translate.empty()) *t.mutable_translation() = worker::ToProto(ParseVec3(a.translate, "--translate"));
-    if (!a.rotate.empty()) {
-        const std::vector<double> r = ParseNumbers(a.rotate, "--rotate", 4);
-        const Vec3d axis(r[0], r[1], r[2]);
-        if (axis.norm() == 0) throw UsageError("--rotate: the axis must not be zero");
-        const Eigen::Matrix3d R = Eigen::AngleAxisd(r[3] * std::numbers::pi / 180.0, axis.normalized()).toRotationMatrix();
-        for (int i = 0; i < 3; ++i)
-            for (int j = 0; j < 3; ++j) t.add_rotation(R(i, j));
-    }
-    t.set_scale(a.scale);
+    *job.mutable_transform_b() = PlacementToProto(a.place);
     job.set_ascii(a.ascii);
     PrintReport(ExecuteJob(spec, {a.a, a.b}, a.output, a.flags, a.job), a.flags);
 }
 
 }  // namespace
 
+void AddPlacementFlags(CLI::App* sub, PlacementFlags* flags) {
+    flags->scale = Similarity{}.scale;
+    sub->add_option("--translate", flags->translate, "Move B by x,y,z (after rotating and scaling it)");
+    sub->add_option("--rotate", flags->rotate, "Rotate B about the axis ax,ay,az through its origin by DEG degrees: ax,ay,az,DEG");
+    sub->add_option("--scale", flags->scale, "Scale B uniformly about its origin")
+        ->capture_default_str()
+        ->check(CLI::Range(kMinBooleanScale, kMaxBooleanScale));
+}
+
+v1::Similarity PlacementToProto(const PlacementFlags& flags) {
+    v1::Similarity t;
+    if (!flags.translate.empty()) *t.mutable_translation() = worker::ToProto(ParseVec3(flags.translate, "--translate"));
+    if (!flags.rotate.empty()) {
+        const std::vector<double> r = ParseNumbers(flags.rotate, "--rotate", 4);
+        const Vec3d axis(r[0], r[1], r[2]);
+        if (axis.norm() == 0) throw UsageError("--rotate: the axis must not be zero");
+        const Eigen::Matrix3d R = Eigen::AngleAxisd(r[3] * std::numbers::pi / 180.0, axis.normalized()).toRotationMatrix();
+        for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j) t.add_rotation(R(i, j));
+    }
+    t.set_scale(flags.scale);
+    return t;
+}
+
 void RegisterBooleanCommands(CLI::App& app) {
     auto a = std::make_shared<BooleanArgs>();
-    const Similarity identity;
-    a->scale = identity.scale;
     auto* sub = app.add_subcommand("boolean", "Union, intersection or difference of the solids two closed clouds bound (notes 3.1)");
     sub->add_option("a", a->a, "First solid: a closed PLY or XYZ cloud (normals estimated when absent)")
         ->required()
@@ -64,11 +76,7 @@ void RegisterBooleanCommands(CLI::App& app) {
         ->check(CLI::IsMember(OpNames()));
     sub->add_option("-o,--output", a->output, "Output PLY: positions, normals, radius, crease, crease_n{x,y,z}, source")
         ->required();
-    sub->add_option("--translate", a->translate, "Move B by x,y,z (after rotating and scaling it)");
-    sub->add_option("--rotate", a->rotate, "Rotate B about the axis ax,ay,az through its origin by DEG degrees: ax,ay,az,DEG");
-    sub->add_option("--scale", a->scale, "Scale B uniformly about its origin")
-        ->capture_default_str()
-        ->check(CLI::Range(kMinBooleanScale, kMaxBooleanScale));
+    AddPlacementFlags(sub, &a->place);
     sub->add_flag("--ascii", a->ascii, "Write ASCII PLY");
     AddCommonFlags(sub, &a->flags);
     AddJobFlags(sub, &a->job);

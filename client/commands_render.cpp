@@ -3,6 +3,8 @@
 
 #include "cli_common.h"
 #include "job_exec.h"
+#include "placement.h"
+#include "surfel/boolean/boolean.h"
 #include "surfel/worker/job_kind.h"
 #include "surfel/base/error.h"
 #include "surfel/io/image.h"
@@ -46,6 +48,9 @@ struct RenderArgs {
     int spp = defaults.samples_per_pixel, degree = defaults.surface.degree,
         max_iterations = defaults.surface.max_iterations;
     float h = defaults.surface.h, precision = defaults.surface.precision;
+    std::string csg, with;  // --csg OP --with B
+    PlacementFlags place;
+    bool no_creases = !defaults.creases;
     CommonFlags flags;
     JobFlags job;
 };
@@ -84,7 +89,19 @@ void RunRender(RenderArgs& a) {
     r.set_format(format == ImageFormat::kPng ? v1::RenderJob::PNG
                  : a.half                    ? v1::RenderJob::EXR_HALF
                                              : v1::RenderJob::EXR);
-    nlohmann::json report = ExecuteJob(spec, {a.input}, a.output, a.flags, a.job);
+    r.set_no_creases(a.no_creases);
+    std::vector<std::string> inputs{a.input};
+    if (!a.csg.empty()) {
+        if (a.with.empty()) throw UsageError("--csg: needs --with B (the second solid)");
+        r.set_csg_op(ParseProtoEnum("--csg", a.csg, &v1::BooleanJob::Op_Parse));
+        *r.mutable_csg_transform_b() = PlacementToProto(a.place);
+        inputs.push_back(a.with);
+    } else if (!a.with.empty()) {
+        throw UsageError("--with: needs --csg OP (union, intersection, difference, reverse-difference)");
+    } else if (!a.place.translate.empty() || !a.place.rotate.empty() || a.place.scale != 1.0) {
+        throw UsageError("--translate/--rotate/--scale: place the --with solid of a --csg render");
+    }
+    nlohmann::json report = ExecuteJob(spec, inputs, a.output, a.flags, a.job);
     if (!a.png.empty() && report.contains("output")) {  // the preview, from the written image
         WriteImage(ReadImage(a.output), a.png);
         report["png"] = a.png;
@@ -116,10 +133,20 @@ void RegisterRenderCommands(CLI::App& app) {
     sub->add_option("--degree", a->degree, "Local polynomial degree (0, 1, 2)")->capture_default_str()->check(CLI::Range(0, 2));
     sub->add_option("--max-iterations", a->max_iterations, "Iterations per ball")->capture_default_str()->check(CLI::Range(1, kMaxSurfaceIterations));
     sub->add_flag("--half", a->half, "Write EXR channels as 16-bit half floats");
+    std::vector<std::string> ops;
+    for (const BooleanOp op : kBooleanOps) ops.emplace_back(BooleanOpName(op));
+    sub->add_option("--csg", a->csg, "Ray-trace the boolean of INPUT and --with directly (notes 3.1): union | intersection | difference (INPUT - B) | reverse-difference")
+        ->check(CLI::IsMember(ops));
+    sub->add_option("--with", a->with, "The second solid B of --csg (PLY or XYZ), placed by --translate/--rotate/--scale")
+        ->check(CLI::ExistingFile);
+    AddPlacementFlags(sub, &a->place);
+    sub->add_flag("--no-creases", a->no_creases, "Render a boolean result's surfel pairs as one smooth surface");
     AddCommonFlags(sub, &a->flags);
     AddJobFlags(sub, &a->job);
     sub->footer("Runs in-process, or on a server with --server host:port (the cloud is uploaded once).\nExample:\n  surfel render bunny.ply -o bunny.exr --png bunny.png --width 400 --height 200 \\\n"
-                "      --light dir:-1,-1,-1 --spp 4 --json");
+                "      --light dir:-1,-1,-1 --spp 4 --json\n"
+                "  surfel render sphere.ply --csg difference --with box.ply --translate 0,0,1.4 -o carved.exr\n"
+                "A boolean result (surfel boolean) renders with sharp creases at its surfel pairs.");
     sub->callback([a] { RunRender(*a); });
 }
 

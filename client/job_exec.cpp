@@ -39,7 +39,7 @@ void AddJobFlags(CLI::App* sub, JobFlags* flags) {
 nlohmann::json ExecuteJob(v1::JobSpec spec, const std::vector<std::string>& inputs, const std::string& output,
                           const CommonFlags& flags, const JobFlags& job_flags) {
     const worker::JobKind& kind = worker::KindOf(spec);
-    SURFEL_CHECK(inputs.size() == kind.InputCount(), kind.Name() << " takes " << kind.InputCount() << " inputs");
+    SURFEL_CHECK(inputs.size() == kind.InputCount(spec), kind.Name() << " takes " << kind.InputCount(spec) << " inputs");
     const std::string label(kind.Name());
     if (job_flags.timeout_s > 0) spec.set_timeout_ms(static_cast<std::int64_t>(job_flags.timeout_s * 1000));
     // Options first, before any work: a bad value is a usage error. In-process, a cloud's id is

@@ -178,7 +178,7 @@ constexpr auto kHangLimit = std::chrono::seconds(60);
 Outcome RunHere(const JobVariant& variant, const PointCloud& cloud) {
     v1::JobSpec spec = variant.spec(cloud.size(), Diagonal(cloud));
     const worker::JobKind& kind = worker::KindOf(spec);
-    for (std::size_t i = 0; i < kind.InputCount(); ++i) kind.SetInput(spec, i, "cloud");
+    for (std::size_t i = 0; i < kind.InputCount(spec); ++i) kind.SetInput(spec, i, "cloud");
     const auto shared = std::make_shared<const PointCloud>(cloud);
     const auto start = std::chrono::steady_clock::now();
     bool hung = false;
@@ -305,7 +305,7 @@ TEST_P(ThroughTheServer, SameOutcomeAsInProcess) {
         }
         v1::JobSpec spec = variant.spec(input.cloud.size(), Diagonal(input.cloud));
         const worker::JobKind& kind = worker::KindOf(spec);
-        for (std::size_t i = 0; i < kind.InputCount(); ++i) kind.SetInput(spec, i, id);
+        for (std::size_t i = 0; i < kind.InputCount(spec); ++i) kind.SetInput(spec, i, id);
 
         Outcome there;
         client::ServiceClient c(server_->target(), /*timeout_s=*/60);

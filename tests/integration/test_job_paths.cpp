@@ -68,14 +68,14 @@ TEST_P(JobPaths, InProcessAndThroughTheServerGiveTheSameBytes) {
 
     // In-process, as the CLI runs it: each cloud id is the file's path.
     v1::JobSpec local = kind.Example();
-    for (std::size_t i = 0; i < kind.InputCount(); ++i) kind.SetInput(local, i, path);
+    for (std::size_t i = 0; i < kind.InputCount(local); ++i) kind.SetInput(local, i, path);
     const worker::JobOutput here = worker::RunJob(
         local, [](const std::string& p) { return std::make_shared<const PointCloud>(ReadPointCloud(p)); });
 
     client::ServiceClient c(server_->target());
     v1::JobSpec remote = kind.Example();
     const std::string cloud_id = c.UploadFile(path).id();
-    for (std::size_t i = 0; i < kind.InputCount(); ++i) kind.SetInput(remote, i, cloud_id);
+    for (std::size_t i = 0; i < kind.InputCount(remote); ++i) kind.SetInput(remote, i, cloud_id);
     const v1::Job job = c.Submit(remote);
     EXPECT_EQ(job.type(), kind.Name());
     const client::WatchOutcome there = c.Watch(job.id(), /*include_result=*/true, /*cancel_on_disconnect=*/false);
@@ -89,10 +89,59 @@ TEST_P(JobPaths, InProcessAndThroughTheServerGiveTheSameBytes) {
         << kind.Name() << ": result bytes differ";
 }
 
+// A CSG render reads two clouds (render.cloud_id and render.csg_cloud_id): in-process and through
+// the server (both uploaded) it gives the same bytes.
+class CsgRenderPaths : public JobPaths {};
+
+TEST_F(CsgRenderPaths, InProcessAndThroughTheServerGiveTheSameBytes) {
+    ShapeOptions o;
+    o.points = 3000;
+    o.normals = true;
+    o.scale = 0.7;
+    o.seed = 2;
+    const std::string a = (dir_ / "sphere.ply").string(), b = (dir_ / "small.ply").string();
+    WritePly(SampleShape(Shape::kSphere, o), b);
+    const worker::JobKind& kind = *worker::FindJobKind("render");
+    v1::JobSpec spec;
+    v1::RenderJob& r = *spec.mutable_render();
+    r.set_width(32);
+    r.set_height(24);
+    r.set_csg_op(v1::BooleanJob::DIFFERENCE);
+    *r.mutable_csg_transform_b()->mutable_translation() = worker::ToProto(Vec3d(0.6, 0, 0.3));
+    ASSERT_EQ(kind.InputCount(spec), 2u);
+    v1::JobSpec local = spec;
+    kind.SetInput(local, 0, a);
+    kind.SetInput(local, 1, b);
+    const worker::JobOutput here = worker::RunJob(
+        local, [](const std::string& p) { return std::make_shared<const PointCloud>(ReadPointCloud(p)); });
+    EXPECT_EQ(here.report.at("csg_op"), "difference");
+    EXPECT_GT(here.report.at("classifications").get<std::uint64_t>(), 0u);
+
+    client::ServiceClient c(server_->target());
+    v1::JobSpec remote = spec;
+    kind.SetInput(remote, 0, c.UploadFile(a).id());
+    kind.SetInput(remote, 1, c.UploadFile(b).id());
+    const v1::Job job = c.Submit(remote);
+    const client::WatchOutcome there = c.Watch(job.id(), /*include_result=*/true, /*cancel_on_disconnect=*/false);
+    ASSERT_EQ(there.state, v1::SUCCEEDED) << there.status_message;
+    ASSERT_EQ(there.bytes.size(), here.bytes.size());
+    EXPECT_TRUE(WithoutCaptureDate(there.bytes) == WithoutCaptureDate(here.bytes)) << "CSG render bytes differ";
+
+    // Without its second cloud the spec is refused naming the field.
+    v1::JobSpec missing = remote;
+    missing.mutable_render()->clear_csg_cloud_id();
+    try {
+        c.Submit(missing);
+        FAIL() << "submitted a CSG render without B";
+    } catch (const client::RpcError& e) {
+        EXPECT_NE(std::string(e.what()).find("render.csg_cloud_id: is required"), std::string::npos) << e.what();
+    }
+}
+
 TEST_P(JobPaths, TheServerRefusesAnEmptySpecNamingTheCloudId) {
     const worker::JobKind& kind = *GetParam();
     v1::JobSpec spec = kind.Example();
-    for (std::size_t i = 0; i < kind.InputCount(); ++i) kind.SetInput(spec, i, "");
+    for (std::size_t i = 0; i < kind.InputCount(spec); ++i) kind.SetInput(spec, i, "");
     client::ServiceClient c(server_->target());
     try {
         c.Submit(spec);
@@ -107,7 +156,7 @@ TEST_P(JobPaths, TheServerRefusesAnEmptySpecNamingTheCloudId) {
 TEST_P(JobPaths, AnUnknownCloudIsNotFoundNamingTheField) {
     const worker::JobKind& kind = *GetParam();
     v1::JobSpec spec = kind.Example();
-    for (std::size_t i = 0; i < kind.InputCount(); ++i) kind.SetInput(spec, i, std::string(64, 'a'));
+    for (std::size_t i = 0; i < kind.InputCount(spec); ++i) kind.SetInput(spec, i, std::string(64, 'a'));
     client::ServiceClient c(server_->target());
     try {
         c.Submit(spec);

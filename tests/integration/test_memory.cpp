@@ -38,7 +38,7 @@ worker::CloudFacts Facts(std::uint64_t points) {
 
 std::uint64_t Estimate(const v1::JobSpec& spec, std::uint64_t points) {
     const worker::JobKind& kind = worker::KindOf(spec);
-    std::vector<worker::CloudFacts> facts(kind.InputCount(), Facts(points));
+    std::vector<worker::CloudFacts> facts(kind.InputCount(spec), Facts(points));
     return worker::EstimateJobMemory(spec, facts);
 }
 

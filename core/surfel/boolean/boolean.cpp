@@ -1,5 +1,7 @@
 #include "surfel/boolean/boolean.h"
 
+#include "surfel/boolean/classifier.h"
+
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
 
@@ -261,44 +263,28 @@ void ClassifyAll(const Side& self, const Side& other, const BooleanOptions& opti
     inside.assign(n, 0);
     clear.assign(n, 0.0f);
     constexpr std::size_t kChunk = 512;
-    constexpr int kSpheres = 8;
     const std::size_t chunks = (n + kChunk - 1) / kChunk;
     std::atomic<std::size_t> saved{0}, mls{0};
     tbb::parallel_for(std::size_t{0}, chunks, [&](std::size_t c) {
-        struct Sphere {
-            Vec3f c;
-            float r;
-            std::uint8_t value;
-        };
         const bool coherence = options.coherence;
-        Sphere ring[kSpheres];
-        int count = 0, head = 0;
+        CoherenceCache cache;
         std::size_t my_saved = 0, my_mls = 0;
         const std::size_t end = std::min(n, (c + 1) * kChunk);
         for (std::size_t k = c * kChunk; k < end; ++k) {
             const std::uint32_t i = static_cast<std::uint32_t>(key[k] & 0xffffffffu);
-            bool answered = false;
-            for (int j = 0; j < count && coherence; ++j) {
-                const Sphere& s = ring[(head - 1 - j + kSpheres) % kSpheres];
-                const float dist = (x[i] - s.c).norm();
-                if (dist < s.r) {
-                    inside[i] = s.value;
-                    clear[i] = s.r - dist;
-                    answered = true;
+            if (coherence) {
+                if (const auto found = cache.Find(x[i])) {
+                    inside[i] = static_cast<std::uint8_t>(found->side);
+                    clear[i] = found->clear;
                     ++my_saved;
-                    break;
+                    continue;
                 }
             }
-            if (answered) continue;
             const Omega o = Classify(other, x[i], self.Normal(i), options.coincident_tolerance);
             inside[i] = o.value;
             clear[i] = o.clear;
             my_mls += o.used_mls;
-            if (coherence && o.clear > 0) {
-                ring[head] = {x[i], o.clear, o.value};
-                head = (head + 1) % kSpheres;
-                count = std::min(count + 1, kSpheres);
-            }
+            if (coherence) cache.Add(x[i], {static_cast<SolidSide>(o.value), o.clear});
         }
         saved += my_saved;
         mls += my_mls;
@@ -596,7 +582,12 @@ void AddSide(Output& out, const Side& side, const std::vector<std::uint8_t>& kee
 // (regularised CSG): a shared face with the solids on the same side stays once (A's copy) in the
 // union and the intersection and goes in both differences; a face where the solids touch goes in
 // the union and the intersection and stays on the minuend's side of a difference.
-bool Keep(std::uint8_t v, bool of_a, BooleanOp op) {
+bool Keep(std::uint8_t v, bool of_a, BooleanOp op) { return TableKeeps(static_cast<SolidSide>(v), of_a, op); }
+
+}  // namespace
+
+bool TableKeeps(SolidSide side, bool of_a, BooleanOp op) {
+    const std::uint8_t v = static_cast<std::uint8_t>(side);
     bool want_inside = false;
     switch (op) {
         case BooleanOp::kUnion:
@@ -624,6 +615,8 @@ bool Keep(std::uint8_t v, bool of_a, BooleanOp op) {
     }
     return false;
 }
+
+namespace {
 
 // Up-sampling of the coarser input near the curve (3.1.2, by the splitting of 3.2.2): a kept
 // sample of `self` within 2 of its spacings eta of a curve sample where the other input is more
@@ -799,6 +792,74 @@ BooleanResult Boolean(const PointCloud& a, const PointCloud& b, BooleanOp op,
     tracker.Advance(1.0);
     rep.time_ms = watch.ElapsedMs();
     return result;
+}
+
+}  // namespace surfel
+
+namespace surfel {
+
+// ---------------------------------------------------------------------------------------------
+// The public classifier: one Side, as Boolean() prepares it.
+// ---------------------------------------------------------------------------------------------
+
+struct SolidClassifier::Impl {
+    Side side;
+    double coincident = 0;
+};
+
+SolidClassifier::SolidClassifier(const PointCloud& cloud, const BooleanOptions& options, bool placed,
+                                 std::string name)
+    : impl_(std::make_unique<Impl>()) {
+    options.Validate();
+    cloud.CheckConsistent();
+    impl_->side.name = std::move(name);
+    impl_->coincident = options.coincident_tolerance;
+    PrepareSide(impl_->side, cloud, options, placed);
+    CheckBoundsVolume(impl_->side, options.max_open_area);
+}
+
+SolidClassifier::~SolidClassifier() = default;
+
+SolidAnswer SolidClassifier::Classify(const Vec3f& x, const Vec3f& nx) const {
+    const Omega o = surfel::Classify(impl_->side, x, nx, impl_->coincident);
+    return {static_cast<SolidSide>(o.value), o.clear};
+}
+
+PointCloud SolidClassifier::WorldCloud() const {
+    const Side& side = impl_->side;
+    PointCloud out;
+    out.positions.resize(side.size());
+    out.normals.resize(side.size());
+    for (std::uint32_t i = 0; i < side.size(); ++i) {
+        out.positions[i] = side.Position(i);
+        out.normals[i] = side.Normal(i).normalized();
+    }
+    if (side.input->has_radii()) {
+        out.radii = side.input->radii;
+        for (float& r : out.radii) r *= side.s;
+    }
+    out.colors = side.input->colors;
+    return out;
+}
+
+BoundingBox SolidClassifier::WorldBounds() const { return surfel::WorldBounds(impl_->side); }
+
+bool SolidClassifier::normals_estimated() const { return impl_->side.normals_estimated; }
+
+std::optional<SolidAnswer> CoherenceCache::Find(const Vec3f& x) const {
+    for (int j = 0; j < count_; ++j) {
+        const Sphere& s = ring_[(head_ - 1 - j + kSpheres) % kSpheres];
+        const float dist = (x - s.c).norm();
+        if (dist < s.answer.clear) return SolidAnswer{s.answer.side, s.answer.clear - dist};
+    }
+    return std::nullopt;
+}
+
+void CoherenceCache::Add(const Vec3f& x, const SolidAnswer& answer) {
+    if (!(answer.clear > 0)) return;
+    ring_[head_] = {x, answer};
+    head_ = (head_ + 1) % kSpheres;
+    count_ = std::min(count_ + 1, kSpheres);
 }
 
 }  // namespace surfel

@@ -6,6 +6,7 @@
 
 #include <atomic>
 #include <cmath>
+#include <deque>
 #include <exception>
 #include <limits>
 #include <mutex>
@@ -13,6 +14,8 @@
 
 #include "surfel/base/error.h"
 #include "surfel/base/validate.h"
+#include "surfel/render/csg_render.h"
+#include "surfel/render/surface_layers.h"
 
 namespace surfel {
 
@@ -99,10 +102,11 @@ namespace {
 struct RayContext {
     RTCIntersectContext embree;
     std::optional<AaHit> hit;
+    unsigned hit_layer = 0;                    // the layer (geometry) of `hit`
     AaCounters counters;
     // Shadow rays: balls with gamma < kGammaFirst are not tried during the traversal but kept
-    // here, in traversal order, for the second stage (see InShadow).
-    std::vector<unsigned>* deferred = nullptr;
+    // here, in traversal order, for the second stage (see InShadow): (layer, ball).
+    std::vector<std::pair<unsigned, unsigned>>* deferred = nullptr;
     const HitFilter* filter = nullptr;         // RenderOptions::hit_filter; null = accept every hit
     std::exception_ptr error;                  // the first exception a callback caught
 };
@@ -110,6 +114,9 @@ struct RayContext {
 struct SceneData {
     const AaSurface* surface;
     const PointCloud* cloud;
+    unsigned layer = 0;               // index into the layers (= Embree geometry id)
+    const HitFilter* keep = nullptr;  // SurfaceLayer::keep; null or empty = every hit
+    bool flip = false;                // SurfaceLayer::flip_normals
     // The first exception of a bounds callback (those run on Embree's build threads).
     std::mutex build_mutex;
     std::exception_ptr build_error;
@@ -125,8 +132,10 @@ void Guarded(std::exception_ptr* error, Body&& body) noexcept {
     }
 }
 
-// Whether the hit filter (if any) lets the ray accept `hit`.
-bool Accepts(const RayContext& ctx, const AaHit& hit) { return !ctx.filter || !*ctx.filter || (*ctx.filter)(hit); }
+// Whether the layer's filter and the render's hit filter (if any) let the ray accept `hit`.
+bool Accepts(const RayContext& ctx, const SceneData& s, const AaHit& hit) {
+    return (!s.keep || !*s.keep || (*s.keep)(hit)) && (!ctx.filter || !*ctx.filter || (*ctx.filter)(hit));
+}
 
 void BoundsFn(const RTCBoundsFunctionArguments* args) {
     auto* s = static_cast<SceneData*>(args->geometryUserPtr);
@@ -177,10 +186,14 @@ void IntersectFn(const RTCIntersectFunctionNArguments* args) {
         const Vec3d o(rh->ray.org_x, rh->ray.org_y, rh->ray.org_z), d(rh->ray.dir_x, rh->ray.dir_y, rh->ray.dir_z);
         double t0, t1, gamma;
         if (!BallInterval(*s, args->primID, o, d, rh->ray.tnear, rh->ray.tfar, &t0, &t1, &gamma)) return;
+        // The same-sheet shortcut only against a hit of the same surface (another layer's sheet
+        // may lie just behind this one, as at a crease).
+        const bool same = ctx->hit && ctx->hit_layer == s->layer;
         auto hit = s->surface->IntersectInBall(args->primID, o, d, t0, t1, &ctx->counters,
-                                               ctx->hit ? ctx->hit->t : std::numeric_limits<double>::infinity());
+                                               same ? ctx->hit->t : std::numeric_limits<double>::infinity());
         if (!hit || hit->t >= rh->ray.tfar) return;
-        if (!Accepts(*ctx, *hit)) return;
+        if (s->flip) hit->normal = -hit->normal;
+        if (!Accepts(*ctx, *s, *hit)) return;
         rh->ray.tfar = static_cast<float>(hit->t);
         rh->hit.Ng_x = static_cast<float>(hit->normal.x());
         rh->hit.Ng_y = static_cast<float>(hit->normal.y());
@@ -190,6 +203,7 @@ void IntersectFn(const RTCIntersectFunctionNArguments* args) {
         rh->hit.geomID = args->geomID;
         rh->hit.instID[0] = args->context->instID[0];
         ctx->hit = hit;
+        ctx->hit_layer = s->layer;
     });
 }
 
@@ -210,11 +224,12 @@ void OccludedFn(const RTCOccludedFunctionNArguments* args) {
         double t0, t1, gamma;
         if (!BallInterval(*s, args->primID, o, d, ray->tnear, ray->tfar, &t0, &t1, &gamma)) return;
         if (gamma < kGammaFirst) {
-            ctx->deferred->push_back(args->primID);
+            ctx->deferred->emplace_back(s->layer, args->primID);
             return;
         }
-        const auto hit = s->surface->IntersectInBall(args->primID, o, d, t0, t1, &ctx->counters);
-        if (hit && Accepts(*ctx, *hit)) ray->tfar = -std::numeric_limits<float>::infinity();
+        auto hit = s->surface->IntersectInBall(args->primID, o, d, t0, t1, &ctx->counters);
+        if (hit && s->flip) hit->normal = -hit->normal;
+        if (hit && Accepts(*ctx, *s, *hit)) ray->tfar = -std::numeric_limits<float>::infinity();
     });
     if (ctx->error) ray->tfar = -std::numeric_limits<float>::infinity();
 }
@@ -230,8 +245,9 @@ double Jitter(std::uint64_t x) {
 
 class EmbreeScene {
 public:
-    /// Builds the BVH over the balls; rethrows what a bounds callback caught.
-    EmbreeScene(SceneData* data, std::size_t count) : data_(data) {
+    /// Builds the BVH over the balls of every layer (one user geometry each, geometry id = layer);
+    /// rethrows what a bounds callback caught.
+    explicit EmbreeScene(std::deque<SceneData>* layers) : layers_(layers) {
         device_ = rtcNewDevice(nullptr);
         if (!device_) throw Error(ErrorCode::kInternal, "Embree device creation failed");
         scene_ = rtcNewScene(device_);
@@ -239,20 +255,25 @@ public:
         // and renders no slower (single-core 158 against 162 ms; the image differs only in which
         // ball a ray meets first).
         rtcSetSceneBuildQuality(scene_, RTC_BUILD_QUALITY_LOW);
-        RTCGeometry g = rtcNewGeometry(device_, RTC_GEOMETRY_TYPE_USER);
-        rtcSetGeometryUserPrimitiveCount(g, static_cast<unsigned>(count));
-        rtcSetGeometryUserData(g, data);
-        rtcSetGeometryBoundsFunction(g, BoundsFn, nullptr);
-        rtcSetGeometryIntersectFunction(g, IntersectFn);
-        rtcSetGeometryOccludedFunction(g, OccludedFn);
-        rtcCommitGeometry(g);
-        rtcAttachGeometry(scene_, g);
-        rtcReleaseGeometry(g);
+        for (SceneData& data : *layers) {
+            RTCGeometry g = rtcNewGeometry(device_, RTC_GEOMETRY_TYPE_USER);
+            rtcSetGeometryUserPrimitiveCount(g, static_cast<unsigned>(data.cloud->size()));
+            rtcSetGeometryUserData(g, &data);
+            rtcSetGeometryBoundsFunction(g, BoundsFn, nullptr);
+            rtcSetGeometryIntersectFunction(g, IntersectFn);
+            rtcSetGeometryOccludedFunction(g, OccludedFn);
+            rtcCommitGeometry(g);
+            rtcAttachGeometryByID(scene_, g, data.layer);
+            rtcReleaseGeometry(g);
+        }
         rtcCommitScene(scene_);
-        if (data->build_error || rtcGetDeviceError(device_) != RTC_ERROR_NONE) {
+        std::exception_ptr build_error;
+        for (SceneData& data : *layers)
+            if (!build_error) build_error = data.build_error;
+        if (build_error || rtcGetDeviceError(device_) != RTC_ERROR_NONE) {
             rtcReleaseScene(scene_);
             rtcReleaseDevice(device_);
-            if (data->build_error) std::rethrow_exception(data->build_error);
+            if (build_error) std::rethrow_exception(build_error);
             throw Error(ErrorCode::kInternal, "Embree scene build failed");
         }
     }
@@ -261,10 +282,10 @@ public:
         rtcReleaseDevice(device_);
     }
     RTCScene scene() const { return scene_; }
-    const SceneData* data() const { return data_; }
+    const SceneData& layer(unsigned i) const { return (*layers_)[i]; }
 
 private:
-    const SceneData* data_;
+    const std::deque<SceneData>* layers_;
     RTCDevice device_ = nullptr;
     RTCScene scene_ = nullptr;
 };
@@ -305,12 +326,10 @@ bool Occluded(const EmbreeScene& scene, RayContext* ctx, RTCRay* ray) {
 
 // What every layer of one render reads.
 struct Integrator {
-    const PointCloud& cloud;
     const RenderOptions& opt;
     const EmbreeScene& scene;
     Camera::Frame frame;
     std::vector<Light> lights;  // opt.lights, or the default light
-    double h;                   // the surface's scale
     int strata;                 // ceil(sqrt(samples per pixel)): the jitter grid per side
 };
 
@@ -328,26 +347,28 @@ struct PixelSum {
 // passes near the centre (gamma >= kGammaFirst), then the rest; each ball is tried once. One
 // traversal: the rest are the balls it deferred, tried in its order once it found no block (the
 // balls and the order a second traversal restricted to gamma < kGammaFirst would give).
-bool InShadow(const Integrator& I, const AaHit& hit, const Vec3d& n, const Vec3d& ldir, double ldist,
+bool InShadow(const Integrator& I, const AaHit& hit, double h, const Vec3d& n, const Vec3d& ldir, double ldist,
               RenderStats* stats) {
-    thread_local std::vector<unsigned> deferred;
-    const Vec3d so = hit.position + 0.5 * I.h * n;
+    thread_local std::vector<std::pair<unsigned, unsigned>> deferred;
+    const Vec3d so = hit.position + 0.5 * h * n;
     RayContext sctx;
     rtcInitIntersectContext(&sctx.embree);
     sctx.filter = &I.opt.hit_filter;
     deferred.clear();
     sctx.deferred = &deferred;
-    RTCRayHit sr = MakeRay(so, ldir, 0.0, ldist - 0.5 * I.h);
+    RTCRayHit sr = MakeRay(so, ldir, 0.0, ldist - 0.5 * h);
     const float tnear = sr.ray.tnear, tfar = sr.ray.tfar;
     const Vec3d o(sr.ray.org_x, sr.ray.org_y, sr.ray.org_z), d(sr.ray.dir_x, sr.ray.dir_y, sr.ray.dir_z);
     ++stats->shadow_rays;
     bool blocked = Occluded(I.scene, &sctx, &sr.ray);
-    const SceneData& data = *I.scene.data();
     for (std::size_t k = 0; k < deferred.size() && !blocked; ++k) {
+        const SceneData& data = I.scene.layer(deferred[k].first);
+        const unsigned ball = deferred[k].second;
         double t0, t1, gamma;
-        if (!BallInterval(data, deferred[k], o, d, tnear, tfar, &t0, &t1, &gamma)) continue;
-        const auto h = data.surface->IntersectInBall(deferred[k], o, d, t0, t1, &sctx.counters);
-        blocked = h && Accepts(sctx, *h);
+        if (!BallInterval(data, ball, o, d, tnear, tfar, &t0, &t1, &gamma)) continue;
+        auto sh = data.surface->IntersectInBall(ball, o, d, t0, t1, &sctx.counters);
+        if (sh && data.flip) sh->normal = -sh->normal;
+        blocked = sh && Accepts(sctx, data, *sh);
     }
     stats->surface.Add(sctx.counters);
     return blocked;
@@ -355,11 +376,12 @@ bool InShadow(const Integrator& I, const AaHit& hit, const Vec3d& n, const Vec3d
 
 // Shade: the radiance towards the eye from `hit` on the ray with unit direction `d`: ambient plus,
 // per unshadowed light, Lambert and Blinn-Phong terms. The side facing the camera is shaded.
-Vec3d Shade(const Integrator& I, const AaHit& hit, const Vec3d& d, RenderStats* stats) {
+Vec3d Shade(const Integrator& I, const AaHit& hit, unsigned layer, const Vec3d& d, RenderStats* stats) {
     const RenderOptions& opt = I.opt;
+    const SceneData& data = I.scene.layer(layer);
     Vec3d n = hit.normal;
     if (n.dot(d) > 0) n = -n;
-    const Vec3d albedo = I.cloud.has_colors() ? Vec3d(hit.color[0], hit.color[1], hit.color[2]) : opt.albedo;
+    const Vec3d albedo = data.cloud->has_colors() ? Vec3d(hit.color[0], hit.color[1], hit.color[2]) : opt.albedo;
     Vec3d c = opt.ambient * albedo;
     for (const Light& L : I.lights) {
         Vec3d ldir;
@@ -373,7 +395,7 @@ Vec3d Shade(const Integrator& I, const AaHit& hit, const Vec3d& d, RenderStats* 
         }
         const double ndl = n.dot(ldir);
         if (ndl <= 0) continue;
-        if (opt.shadows && InShadow(I, hit, n, ldir, ldist, stats)) continue;
+        if (opt.shadows && InShadow(I, hit, data.surface->h(), n, ldir, ldist, stats)) continue;
         const Vec3d hv = (ldir - d).normalized();
         const Vec3d lc = L.color * L.intensity;
         c += lc.cwiseProduct(albedo) * ndl + lc * (opt.specular * std::pow(std::max(0.0, n.dot(hv)), opt.shininess));
@@ -410,7 +432,7 @@ void EvaluatePixelSample(const Integrator& I, int x, int y, int s, PixelSum* sum
         sum->zmin = hit.t;
         sum->nearest_n = hit.normal;
     }
-    sum->rgb += Shade(I, hit, d, stats);
+    sum->rgb += Shade(I, hit, ctx.hit_layer, d, stats);
 }
 
 // Pixel (x, y): the mean of its samples into the image's channels (see RenderResult).
@@ -439,15 +461,23 @@ void RenderTile(const Integrator& I, int tile, int tiles_x, Image* img, RenderSt
 
 }  // namespace
 
-RenderResult Render(const PointCloud& cloud, const RenderOptions& opt, const ProgressFn& progress) {
+RenderResult RenderLayers(std::span<const SurfaceLayer> layers, const RenderOptions& opt, const ProgressFn& progress) {
     opt.Validate();
+    SURFEL_CHECK(!layers.empty(), layers.size());
     const Camera& cam = opt.camera;
 
-    // Setup: the surface (neighbour search, ball radii) and the BVH over the balls.
+    // Setup: the BVH over the balls of every layer (the surfaces are the caller's).
     Stopwatch watch;
-    const AaSurface surface(cloud, opt.surface);
-    SceneData data{&surface, &cloud, {}, {}};
-    const EmbreeScene scene(&data, cloud.size());
+    std::deque<SceneData> data;
+    for (std::size_t i = 0; i < layers.size(); ++i) {
+        SceneData& d = data.emplace_back();
+        d.surface = layers[i].surface;
+        d.cloud = &layers[i].surface->cloud();
+        d.layer = static_cast<unsigned>(i);
+        d.keep = &layers[i].keep;
+        d.flip = layers[i].flip_normals;
+    }
+    const EmbreeScene scene(&data);
     const double setup_ms = watch.ElapsedMs();
 
     // The camera frame, the lights (default: one over the camera's left shoulder), the image.
@@ -456,7 +486,7 @@ RenderResult Render(const PointCloud& cloud, const RenderOptions& opt, const Pro
     if (lights.empty())
         lights.push_back(
             {Light::Kind::kDirectional, (frame.w - 0.6 * frame.v + 0.5 * frame.u).normalized(), {1, 1, 1}, 1.0});
-    const Integrator integrator{cloud, opt, scene, frame, std::move(lights), surface.h(),
+    const Integrator integrator{opt, scene, frame, std::move(lights),
                                 static_cast<int>(std::ceil(std::sqrt(double(opt.samples_per_pixel))))};
     RenderResult result;
     Image& img = result.image;
@@ -474,6 +504,8 @@ RenderResult Render(const PointCloud& cloud, const RenderOptions& opt, const Pro
         RenderStats local;
         for (int tile = range.begin(); tile != range.end(); ++tile) {
             tracker.Check();
+            for (const SurfaceLayer& layer : layers)
+                if (layer.on_tile) layer.on_tile();
             RenderTile(integrator, tile, tiles_x, &img, &local);
             tracker.Advance(1.0);
         }
@@ -485,8 +517,23 @@ RenderResult Render(const PointCloud& cloud, const RenderOptions& opt, const Pro
     });
     st.time_ms = watch.ElapsedMs();
     st.setup_ms = setup_ms;
-    st.h = integrator.h;
-    st.precision = surface.precision();
+    st.h = layers[0].surface->h();
+    st.precision = layers[0].surface->precision();
+    return result;
+}
+
+RenderResult Render(const PointCloud& cloud, const RenderOptions& opt, const ProgressFn& progress) {
+    opt.Validate();
+    if (opt.creases && HasSurfelPairs(cloud)) return RenderWithCreases(cloud, opt, progress);
+    // Setup: the surface (neighbour search, ball radii); RenderLayers adds the BVH build.
+    Stopwatch watch;
+    const AaSurface surface(cloud, opt.surface);
+    const double surface_ms = watch.ElapsedMs();
+    SurfaceLayer layer;
+    layer.surface = &surface;
+    RenderResult result = RenderLayers({&layer, 1}, opt, progress);
+    result.stats.setup_ms += surface_ms;
+    result.stats.time_ms += surface_ms;
     return result;
 }
 

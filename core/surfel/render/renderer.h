@@ -77,6 +77,9 @@ struct RenderOptions {
     AaOptions surface;                    ///< h, precision, degree, iterations.
     int tile = 16;                        ///< Tile size for parallel rendering.
     HitFilter hit_filter;                 ///< Empty = accept every hit (see HitFilter).
+    /// A cloud with surfel pairs (a boolean result, surfel/boolean/boolean.h) renders with sharp
+    /// creases (csg_render.h, RenderWithCreases); false = as one smooth surface.
+    bool creases = true;
 
     /// Throws Error(kInvalidArgument, "<field>: <what>") for the first bad field. The fields are
     /// named as in the render job spec (proto RenderJob), which the worker prefixes with "render.":

@@ -54,7 +54,7 @@ TEST_P(EveryKind, IsFoundByItsCaseAndName) {
     EXPECT_EQ(FindJobKind(kind.Name()), &kind);
     EXPECT_EQ(&KindOf(EmptySpec(kind)), &kind);
     EXPECT_FALSE(kind.Stage().empty());
-    EXPECT_GE(kind.InputCount(), 1u);
+    EXPECT_GE(kind.InputCount(EmptySpec(kind)), 1u);
     // The name is the oneof field's: Job.type, the CLI subcommand and the JSON key agree.
     EXPECT_EQ(v1::JobSpec::descriptor()->FindFieldByNumber(kind.Case())->name(), kind.Name());
 }
@@ -63,7 +63,7 @@ TEST_P(EveryKind, AnEmptySpecNamesItsFirstCloudId) {
     const JobKind& kind = *GetParam();
     const v1::JobSpec spec = EmptySpec(kind);
     const std::vector<CloudInput> inputs = kind.Inputs(spec);
-    ASSERT_EQ(inputs.size(), kind.InputCount());
+    ASSERT_EQ(inputs.size(), kind.InputCount(spec));
     EXPECT_EQ(ValidationMessage(spec), inputs[0].field + ": is required");
     EXPECT_EQ(inputs[0].field.rfind(std::string(kind.Name()) + ".", 0), 0u) << inputs[0].field;
 }
@@ -71,7 +71,7 @@ TEST_P(EveryKind, AnEmptySpecNamesItsFirstCloudId) {
 TEST_P(EveryKind, SetInputFillsEachInput) {
     const JobKind& kind = *GetParam();
     v1::JobSpec spec = kind.Example();
-    for (std::size_t i = 0; i < kind.InputCount(); ++i) kind.SetInput(spec, i, "cloud" + std::to_string(i));
+    for (std::size_t i = 0; i < kind.InputCount(spec); ++i) kind.SetInput(spec, i, "cloud" + std::to_string(i));
     const std::vector<CloudInput> inputs = kind.Inputs(spec);
     for (std::size_t i = 0; i < inputs.size(); ++i) EXPECT_EQ(inputs[i].id, "cloud" + std::to_string(i));
     EXPECT_EQ(ValidationMessage(spec), "");
@@ -80,7 +80,7 @@ TEST_P(EveryKind, SetInputFillsEachInput) {
 TEST_P(EveryKind, ANegativeTimeoutIsRejected) {
     const JobKind& kind = *GetParam();
     v1::JobSpec spec = kind.Example();
-    for (std::size_t i = 0; i < kind.InputCount(); ++i) kind.SetInput(spec, i, "c");
+    for (std::size_t i = 0; i < kind.InputCount(spec); ++i) kind.SetInput(spec, i, "c");
     spec.set_timeout_ms(-1);
     EXPECT_EQ(ValidationMessage(spec), "timeout_ms: must be >= 0");
 }
@@ -88,7 +88,7 @@ TEST_P(EveryKind, ANegativeTimeoutIsRejected) {
 TEST_P(EveryKind, TheExampleRunsAndGivesItsResultType) {
     const JobKind& kind = *GetParam();
     v1::JobSpec spec = kind.Example();
-    for (std::size_t i = 0; i < kind.InputCount(); ++i) kind.SetInput(spec, i, "sphere");
+    for (std::size_t i = 0; i < kind.InputCount(spec); ++i) kind.SetInput(spec, i, "sphere");
     int loads = 0;
     double last_fraction = -1;
     const JobOutput out = RunJob(
@@ -115,7 +115,7 @@ TEST_P(EveryKind, TheExampleRunsAndGivesItsResultType) {
 TEST_P(EveryKind, CancellationStopsTheRun) {
     const JobKind& kind = *GetParam();
     v1::JobSpec spec = kind.Example();
-    for (std::size_t i = 0; i < kind.InputCount(); ++i) kind.SetInput(spec, i, "sphere");
+    for (std::size_t i = 0; i < kind.InputCount(spec); ++i) kind.SetInput(spec, i, "sphere");
     try {
         RunJob(spec, [](const std::string&) { return SmallSphere(); }, [](double) { return false; });
         FAIL() << "a job whose progress hook says stop must not succeed";

@@ -218,6 +218,8 @@ std::optional<std::uint64_t> DirBlobStore::Size(const std::string& key) const {
 
 bool DirBlobStore::Remove(const std::string& key) {
     std::error_code ec;
+    // Only a blob's file, never a folder a malformed key names ("clouds/").
+    if (!fs::is_regular_file(PathOf(key), ec)) return false;
     return fs::remove(PathOf(key), ec);
 }
 

@@ -58,11 +58,12 @@ public:
     virtual std::string_view Name() const = 0;
     /// What a running job of this kind is doing ("rendering"), for progress events.
     virtual std::string_view Stage() const = 0;
-    /// Number of input clouds (1 for render and simplify, 2 for a boolean).
-    virtual std::size_t InputCount() const = 0;
-    /// The clouds `spec` reads, InputCount() of them, with their field paths.
+    /// Number of input clouds `spec` reads (1 for render and simplify, 2 for a boolean and for a
+    /// CSG render, whose spec sets render.csg_op).
+    virtual std::size_t InputCount(const v1::JobSpec& spec) const = 0;
+    /// The clouds `spec` reads, InputCount(spec) of them, with their field paths.
     virtual std::vector<CloudInput> Inputs(const v1::JobSpec& spec) const = 0;
-    /// Sets input `index` (0 <= index < InputCount()) of `spec` to `cloud_id`.
+    /// Sets input `index` (0 <= index < InputCount(spec)) of `spec` to `cloud_id`.
     virtual void SetInput(v1::JobSpec& spec, std::size_t index, const std::string& cloud_id) const = 0;
     /// Checks every option: proto -> core Options -> Options::Validate(), with the field path
     /// prefixed ("render.width: must lie in 1..16384, got 0"). Throws Error(kInvalidArgument).
@@ -73,7 +74,7 @@ public:
     /// Runs a validated `spec` on its clouds (in Inputs order).
     virtual JobOutput Run(const v1::JobSpec& spec, const Clouds& clouds, const ProgressFn& progress) const = 0;
     /// Peak memory (bytes, beyond the process's baseline) a run of the validated `spec` on clouds
-    /// with these facts (InputCount() of them, in Inputs order) needs: loading, the algorithm's
+    /// with these facts (InputCount(spec) of them, in Inputs order) needs: loading, the algorithm's
     /// data structures and the encoded result. Derived from the data structures the kind's core
     /// code allocates; docs/memory.md lists the terms and the measured check.
     virtual std::uint64_t EstimateMemory(const v1::JobSpec& spec, std::span<const CloudFacts> inputs) const = 0;

@@ -53,7 +53,7 @@ std::uint64_t PointsAtSpacing(const Vec3d& extent, double spacing) {
 
 std::uint64_t EstimateJobMemory(const v1::JobSpec& spec, std::span<const CloudFacts> inputs) {
     const JobKind& kind = KindOf(spec);
-    SURFEL_CHECK(inputs.size() == kind.InputCount(), kind.Name() << ": " << inputs.size() << " inputs");
+    SURFEL_CHECK(inputs.size() == kind.InputCount(spec), kind.Name() << ": " << inputs.size() << " inputs");
     return kind.EstimateMemory(spec, inputs);
 }
 

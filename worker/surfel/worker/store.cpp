@@ -38,7 +38,9 @@ std::string Store::UploadPath(const std::string& id) const {
 
 bool Store::DeleteCloud(const std::string& id) {
     const bool existed = DeleteCloudRecord(id);
-    if (blobs_) blobs_->Remove(CloudBlobKey(id));
+    // An empty id would name the clouds folder itself, and removing it (when empty) made every
+    // later upload fail (found by the API fuzzer).
+    if (blobs_ && !id.empty()) blobs_->Remove(CloudBlobKey(id));
     return existed;
 }
 

@@ -19,33 +19,11 @@ constexpr std::uint64_t kBooleanOutputBytesPerPoint = 12 + 12 + 4 + 8 + 24 + 8;
 // ---- proto -> BooleanOp, BooleanOptions --------------------------------------------------------
 // Proto3's "0 / unset means the default" is resolved here; every default and limit is core's.
 
-BooleanOp ToBooleanOp(const v1::BooleanJob& job) {
-    switch (job.op()) {
-        case v1::BooleanJob::UNION: return BooleanOp::kUnion;
-        case v1::BooleanJob::INTERSECTION: return BooleanOp::kIntersection;
-        case v1::BooleanJob::DIFFERENCE: return BooleanOp::kDifference;
-        case v1::BooleanJob::REVERSE_DIFFERENCE: return BooleanOp::kReverseDifference;
-        case v1::BooleanJob::OP_UNSPECIFIED:
-            throw Error(ErrorCode::kInvalidArgument,
-                        "boolean.op: is required (UNION, INTERSECTION, DIFFERENCE or REVERSE_DIFFERENCE)");
-        default: break;
-    }
-    throw Error(ErrorCode::kInvalidArgument, "boolean.op: unknown operation " + std::to_string(job.op()));
-}
+BooleanOp ToBooleanOp(const v1::BooleanJob& job) { return BooleanOpFromProto(job.op(), "boolean.op"); }
 
 BooleanOptions ToBooleanOptions(const v1::BooleanJob& job) {
     BooleanOptions o;
-    if (job.has_transform_b()) {
-        const v1::Similarity& t = job.transform_b();
-        if (t.rotation_size() != 0 && t.rotation_size() != 9)
-            throw Error(ErrorCode::kInvalidArgument, "boolean.transform_b.rotation: must have 9 numbers (a row-major "
-                                                     "3x3 matrix) or none, got " + std::to_string(t.rotation_size()));
-        if (t.rotation_size() == 9)
-            for (int r = 0; r < 3; ++r)
-                for (int c = 0; c < 3; ++c) o.transform.rotation(r, c) = t.rotation(3 * r + c);
-        o.transform.translation = FromProto(t.translation());
-        if (t.scale() != 0) o.transform.scale = t.scale();
-    }
+    if (job.has_transform_b()) o.transform = SimilarityFromProto(job.transform_b(), "boolean.transform_b");
     return o;
 }
 
@@ -94,7 +72,7 @@ public:
     v1::JobSpec::JobCase Case() const override { return v1::JobSpec::kBoolean; }
     std::string_view Name() const override { return "boolean"; }
     std::string_view Stage() const override { return "combining"; }
-    std::size_t InputCount() const override { return 2; }
+    std::size_t InputCount(const v1::JobSpec&) const override { return 2; }
 
     std::vector<CloudInput> Inputs(const v1::JobSpec& spec) const override {
         return {{"boolean.cloud_id_a", spec.boolean().cloud_id_a()},
@@ -159,6 +137,34 @@ public:
 };
 
 }  // namespace
+
+BooleanOp BooleanOpFromProto(int op, const std::string& field) {
+    switch (static_cast<v1::BooleanJob::Op>(op)) {
+        case v1::BooleanJob::UNION: return BooleanOp::kUnion;
+        case v1::BooleanJob::INTERSECTION: return BooleanOp::kIntersection;
+        case v1::BooleanJob::DIFFERENCE: return BooleanOp::kDifference;
+        case v1::BooleanJob::REVERSE_DIFFERENCE: return BooleanOp::kReverseDifference;
+        case v1::BooleanJob::OP_UNSPECIFIED:
+            throw Error(ErrorCode::kInvalidArgument,
+                        field + ": is required (UNION, INTERSECTION, DIFFERENCE or REVERSE_DIFFERENCE)");
+        default: break;
+    }
+    throw Error(ErrorCode::kInvalidArgument, field + ": unknown operation " + std::to_string(op));
+}
+
+Similarity SimilarityFromProto(const v1::Similarity& t, const std::string& field) {
+    Similarity s;
+    if (t.rotation_size() != 0 && t.rotation_size() != 9)
+        throw Error(ErrorCode::kInvalidArgument, field + ".rotation: must have 9 numbers (a row-major "
+                                                 "3x3 matrix) or none, got " + std::to_string(t.rotation_size()));
+    if (t.rotation_size() == 9)
+        for (int r = 0; r < 3; ++r)
+            for (int c = 0; c < 3; ++c) s.rotation(r, c) = t.rotation(3 * r + c);
+    s.translation = FromProto(t.translation());
+    if (t.scale() != 0) s.scale = t.scale();
+    s.Validate(field);
+    return s;
+}
 
 const JobKind& BooleanKind() {
     static const BooleanJobKind kind;

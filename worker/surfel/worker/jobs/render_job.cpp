@@ -5,6 +5,7 @@
 #include "surfel/base/error.h"
 #include "surfel/base/validate.h"
 #include "surfel/io/image.h"
+#include "surfel/render/csg_render.h"
 #include "surfel/render/renderer.h"
 #include "surfel/worker/jobs/jobs.h"
 
@@ -34,6 +35,21 @@ void CheckProtoOnly(const v1::RenderJob& job) {
         if (!v1::Light::Kind_IsValid(job.lights(i).kind()))
             Bad("lights[" + std::to_string(i) + "].kind", "unknown kind " + std::to_string(job.lights(i).kind()));
     CheckFinite("render.view", FromProto(job.view()));
+    if (job.csg_op() == v1::BooleanJob::OP_UNSPECIFIED) {
+        if (!job.csg_cloud_id().empty()) Bad("csg_op", "is required with csg_cloud_id (UNION, INTERSECTION, DIFFERENCE or REVERSE_DIFFERENCE)");
+        if (job.has_csg_transform_b()) Bad("csg_transform_b", "needs csg_op (a CSG render)");
+    } else {
+        BooleanOpFromProto(job.csg_op(), "render.csg_op");
+    }
+}
+
+bool IsCsg(const v1::RenderJob& job) { return job.csg_op() != v1::BooleanJob::OP_UNSPECIFIED; }
+
+/// The boolean's options of a CSG render: B's placement (BooleanJob's defaults otherwise).
+BooleanOptions ToCsgOptions(const v1::RenderJob& job) {
+    BooleanOptions o;
+    if (job.has_csg_transform_b()) o.transform = SimilarityFromProto(job.csg_transform_b(), "render.csg_transform_b");
+    return o;
 }
 
 /// Core options of `job` for a cloud with bounding box `bounds` (the default camera frames it).
@@ -64,6 +80,7 @@ RenderOptions ToRenderOptions(const v1::RenderJob& job, const BoundingBox& bound
     o.shadows = !job.no_shadows();
     if (job.samples_per_pixel()) o.samples_per_pixel = job.samples_per_pixel();
     o.background = FromProto(job.background());
+    o.creases = !job.no_creases();
     o.surface.h = static_cast<float>(job.h());
     o.surface.precision = static_cast<float>(job.precision());
     if (job.degree() != v1::RenderJob::DEGREE_UNSPECIFIED) o.surface.degree = static_cast<int>(job.degree()) - 1;
@@ -109,18 +126,25 @@ public:
     v1::JobSpec::JobCase Case() const override { return v1::JobSpec::kRender; }
     std::string_view Name() const override { return "render"; }
     std::string_view Stage() const override { return "rendering"; }
-    std::size_t InputCount() const override { return 1; }
+    std::size_t InputCount(const v1::JobSpec& spec) const override { return IsCsg(spec.render()) ? 2 : 1; }
 
     std::vector<CloudInput> Inputs(const v1::JobSpec& spec) const override {
+        if (IsCsg(spec.render()))
+            return {{"render.cloud_id", spec.render().cloud_id()}, {"render.csg_cloud_id", spec.render().csg_cloud_id()}};
         return {{"render.cloud_id", spec.render().cloud_id()}};
     }
     void SetInput(v1::JobSpec& spec, std::size_t index, const std::string& cloud_id) const override {
-        SURFEL_CHECK(index == 0, index);
-        spec.mutable_render()->set_cloud_id(cloud_id);
+        SURFEL_CHECK(index < InputCount(spec), index);
+        if (index == 0) spec.mutable_render()->set_cloud_id(cloud_id);
+        else spec.mutable_render()->set_csg_cloud_id(cloud_id);
     }
 
     void Validate(const v1::JobSpec& spec) const override {
         CheckProtoOnly(spec.render());
+        if (IsCsg(spec.render())) {
+            const BooleanOptions csg = ToCsgOptions(spec.render());
+            WithFieldPrefix("render", [&] { csg.Validate(); });
+        }
         const RenderOptions options = ToRenderOptions(spec.render(), StandInBounds(spec.render()));
         WithFieldPrefix("render", [&] { options.Validate(); });
     }
@@ -134,7 +158,20 @@ public:
         const v1::RenderJob& job = spec.render();
         const PointCloud& cloud = *clouds.at(0);
         if (cloud.empty()) throw Error(ErrorCode::kInvalidArgument, "render: the cloud has no points");
-        const RenderOptions options = ToRenderOptions(job, cloud.Bounds());
+        const bool csg = IsCsg(job);
+        const BooleanOptions csg_options = csg ? ToCsgOptions(job) : BooleanOptions{};
+        // The default camera frames the scene: both solids of a CSG render (B placed).
+        BoundingBox bounds = cloud.Bounds();
+        if (csg && !clouds.at(1)->empty()) {
+            const BoundingBox bb = clouds.at(1)->Bounds();
+            const Similarity& T = csg_options.transform;
+            for (int c = 0; c < 8; ++c) {
+                const Vec3d corner((c & 1) ? bb.max.x() : bb.min.x(), (c & 2) ? bb.max.y() : bb.min.y(),
+                                   (c & 4) ? bb.max.z() : bb.min.z());
+                bounds.Extend((T.scale * (T.rotation * corner) + T.translation).cast<float>());
+            }
+        }
+        const RenderOptions options = ToRenderOptions(job, bounds);
         WithFieldPrefix("render", [&] { options.Validate(); });
         // A missing image plugin fails here, before the render's work. The first render of a
         // process opens it (dlopen, not cancellable: ~0.3 s of CPU); a job cancelled or past its
@@ -142,13 +179,42 @@ public:
         LoadImageCodec();
         if (progress && !progress(0.0)) throw Error(ErrorCode::kCancelled, "render: cancelled while loading the image plugin");
         RenderResult r;
-        WithFieldPrefix("render", [&] { r = Render(cloud, options, progress); });
+        CsgRenderReport csg_report;
+        if (csg) {
+            // Core names B's placement "transform"; the spec calls it "csg_transform_b".
+            try {
+                CsgRenderResult c =
+                    RenderCsg(cloud, *clouds.at(1), BooleanOpFromProto(job.csg_op(), "render.csg_op"), options,
+                              csg_options, progress);
+                r = std::move(c.render);
+                csg_report = c.report;
+            } catch (const Error& e) {
+                std::string what = e.what();
+                if (e.code() != ErrorCode::kInvalidArgument) throw;
+                if (what.rfind("transform.", 0) == 0) what = "csg_transform_b." + what.substr(10);
+                else if (what.rfind("b: ", 0) == 0) what = "csg_cloud_id: " + what.substr(3);
+                else if (what.rfind("a: ", 0) == 0) what = "cloud_id: " + what.substr(3);
+                throw Error(e.code(), "render." + what);
+            }
+        } else {
+            WithFieldPrefix("render", [&] { r = Render(cloud, options, progress); });
+        }
         ImageWriteOptions w;
         w.half = job.format() == v1::RenderJob::EXR_HALF;
         JobOutput out;
         std::tie(out.media_type, out.extension) = ResultType(spec);
         out.bytes = EncodeImage(r.image, out.extension == ".png" ? ImageFormat::kPng : ImageFormat::kExr, w);
         out.report = RenderReportJson(r.stats, cloud.size(), options.camera.width, options.camera.height);
+        if (csg) {
+            out.report["csg_op"] = BooleanOpName(BooleanOpFromProto(job.csg_op(), "render.csg_op"));
+            out.report["points_b"] = clouds.at(1)->size();
+            out.report["classifications"] = csg_report.classifications;
+            out.report["queries_saved"] = csg_report.queries_saved;
+            out.report["normals_estimated_a"] = csg_report.normals_estimated_a;
+            out.report["normals_estimated_b"] = csg_report.normals_estimated_b;
+        } else {
+            out.report["creases"] = options.creases && HasSurfelPairs(cloud);
+        }
         out.points = cloud.size();
         out.time_ms = r.stats.time_ms;
         return out;

@@ -75,7 +75,7 @@ public:
     v1::JobSpec::JobCase Case() const override { return v1::JobSpec::kResample; }
     std::string_view Name() const override { return "resample"; }
     std::string_view Stage() const override { return "resampling"; }
-    std::size_t InputCount() const override { return 1; }
+    std::size_t InputCount(const v1::JobSpec&) const override { return 1; }
 
     std::vector<CloudInput> Inputs(const v1::JobSpec& spec) const override {
         return {{"resample.cloud_id", spec.resample().cloud_id()}};

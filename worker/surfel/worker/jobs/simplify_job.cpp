@@ -59,7 +59,7 @@ public:
     v1::JobSpec::JobCase Case() const override { return v1::JobSpec::kSimplify; }
     std::string_view Name() const override { return "simplify"; }
     std::string_view Stage() const override { return "simplifying"; }
-    std::size_t InputCount() const override { return 1; }
+    std::size_t InputCount(const v1::JobSpec&) const override { return 1; }
 
     std::vector<CloudInput> Inputs(const v1::JobSpec& spec) const override {
         return {{"simplify.cloud_id", spec.simplify().cloud_id()}};
