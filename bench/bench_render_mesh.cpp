@@ -222,9 +222,26 @@ Score Compare(const std::vector<float>& truth, const std::vector<float>& z, doub
 // ---- Surfel variants ---------------------------------------------------------------------------
 
 // The surface options of a named variant (see the table's legend).
+// fixed: today's surface (one h = 2 x median spacing); adaptive: AaBandwidth::kAdaptive;
+// +ball: regions of trust at least ball_h = 1 h_i wide; +nw: normal-aware weights (sigma 0.5).
+// Suffixes combine in this order, e.g. adaptive+ball+nw.
 bool ApplyVariant(const std::string& name, AaOptions* o) {
-    if (name == "fixed") return true;
-    return false;
+    std::vector<std::string> parts;
+    std::stringstream ss(name);
+    for (std::string x; std::getline(ss, x, '+');) parts.push_back(x);
+    if (parts.empty()) return false;
+    if (parts[0] == "fixed") o->bandwidth = AaBandwidth::kFixed;
+    else if (parts[0] == "adaptive") o->bandwidth = AaBandwidth::kAdaptive;
+    else return false;
+    for (std::size_t i = 1; i < parts.size(); ++i) {
+        const std::string& p = parts[i];
+        if (p == "ball") o->ball_h = 1.0f;
+        else if (p.rfind("ball", 0) == 0) o->ball_h = std::stof(p.substr(4));
+        else if (p == "nw") o->normal_sigma = 0.5f;
+        else if (p.rfind("nw", 0) == 0) o->normal_sigma = std::stof(p.substr(2));
+        else return false;
+    }
+    return true;
 }
 
 // ---- Poisson peer ------------------------------------------------------------------------------
