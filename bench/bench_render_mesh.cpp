@@ -237,7 +237,7 @@ bool ApplyVariant(const std::string& name, AaOptions* o) {
         const std::string& p = parts[i];
         if (p == "ball") o->ball_h = 1.0f;
         else if (p.rfind("ball", 0) == 0) o->ball_h = std::stof(p.substr(4));
-        else if (p == "nw") o->normal_sigma = 0.5f;
+        else if (p == "nw") o->normal_sigma = kNormalAwareSigma;
         else if (p.rfind("nw", 0) == 0) o->normal_sigma = std::stof(p.substr(2));
         else return false;
     }

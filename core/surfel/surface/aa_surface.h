@@ -37,6 +37,10 @@ enum class AaBandwidth {
 
 /// AaBandwidth::kAdaptive: the per-point scale lies within [1/kAdaptiveRange, kAdaptiveRange] x h.
 inline constexpr float kAdaptiveRange = 3.0f;
+/// AaOptions::normal_sigma of the normal-aware weights when they are asked for by name (the CLI's
+/// `--weights normal`, the job's NORMAL_AWARE): the best of 0.25, 0.5 and 1 on the buddha,
+/// dragon and Lucy (bench/results-render-mesh.md).
+inline constexpr float kNormalAwareSigma = 0.5f;
 
 struct AaOptions {
     float h = 0.0f;             ///< Gaussian scale; 0 = DefaultScale (2 x median spacing). Adaptive: the median point's scale.
