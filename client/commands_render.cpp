@@ -51,6 +51,8 @@ struct RenderArgs {
     std::string csg, with;  // --csg OP --with B
     PlacementFlags place;
     bool no_creases = !defaults.creases;
+    std::string bandwidth = defaults.surface.bandwidth == AaBandwidth::kAdaptive ? "adaptive" : "fixed";
+    std::string weights = defaults.surface.normal_sigma > 0 ? "normal" : "plain";
     CommonFlags flags;
     JobFlags job;
 };
@@ -86,6 +88,8 @@ void RunRender(RenderArgs& a) {
     r.set_precision(a.precision);
     r.set_degree(static_cast<v1::RenderJob::Degree>(a.degree + 1));  // --degree 0..2
     r.set_max_iterations(a.max_iterations);
+    r.set_bandwidth(a.bandwidth == "adaptive" ? v1::RenderJob::ADAPTIVE : v1::RenderJob::FIXED);
+    r.set_weights(a.weights == "normal" ? v1::RenderJob::NORMAL_AWARE : v1::RenderJob::PLAIN);
     r.set_format(format == ImageFormat::kPng ? v1::RenderJob::PNG
                  : a.half                    ? v1::RenderJob::EXR_HALF
                                              : v1::RenderJob::EXR);
@@ -132,6 +136,8 @@ void RegisterRenderCommands(CLI::App& app) {
     sub->add_option("--precision", a->precision, "Convergence |c| < precision (0 = 1e-3 h)")->capture_default_str()->check(CLI::NonNegativeNumber);
     sub->add_option("--degree", a->degree, "Local polynomial degree (0, 1, 2)")->capture_default_str()->check(CLI::Range(0, 2));
     sub->add_option("--max-iterations", a->max_iterations, "Iterations per ball")->capture_default_str()->check(CLI::Range(1, kMaxSurfaceIterations));
+    sub->add_option("--bandwidth", a->bandwidth, "Gaussian scale: fixed (one h) or adaptive (a smooth h per point from the sampling density)")->capture_default_str()->check(CLI::IsMember({"fixed", "adaptive"}));
+    sub->add_option("--weights", a->weights, "Neighbour weights: plain (the paper's) or normal (also by normal agreement: thin parts stay two sheets; estimates normals when the cloud has none)")->capture_default_str()->check(CLI::IsMember({"plain", "normal"}));
     sub->add_flag("--half", a->half, "Write EXR channels as 16-bit half floats");
     std::vector<std::string> ops;
     for (const BooleanOp op : kBooleanOps) ops.emplace_back(BooleanOpName(op));

@@ -1,8 +1,12 @@
 #include "surfel/surface/aa_surface.h"
 
 #include <Eigen/Eigenvalues>
+#include <algorithm>
 #include <cmath>
 #include <vector>
+
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
 
 #include "surfel/base/error.h"
 #include "surfel/base/validate.h"
@@ -35,6 +39,11 @@ struct AaSurface::Impl {
     const PointCloud& cloud;
     AaOptions opt;
     std::vector<float> ball_radius;
+    // AaBandwidth::kAdaptive (empty when fixed): h_j, 1 / h_j^2, and the gather scale of ball i,
+    // the largest h_j of the points near it (a fit in ball i gathers within cutoff x that).
+    std::vector<float> scale, inv_h2, reach;
+    float max_scale = 0.0f;
+    std::vector<Vec3f> weight_normals;  // normal-aware weights (normal_sigma > 0)
     std::unique_ptr<UniformGrid> grid;
     std::vector<CenterEntry> centers;
     // 0 empty, 1 being computed, 2 ready, 3 ready but undefined (no fit at that centre).
@@ -88,7 +97,44 @@ void AaOptions::Validate() const {
     CheckAtLeast("cutoff", cutoff, 1.0);
     CheckRange("normal_ratio", normal_ratio, 0, 1);
     CheckRange("ball_k", ball_k, 1, kMaxBallNeighbors);
+    if (bandwidth != AaBandwidth::kFixed && bandwidth != AaBandwidth::kAdaptive)
+        InvalidField("bandwidth", "unknown kind " + std::to_string(static_cast<int>(bandwidth)));
+    CheckRange("ball_h", ball_h, 0, 10);
+    CheckRange("normal_sigma", normal_sigma, 0, 10);
 }
+
+namespace {
+// AaBandwidth::kAdaptive: the per-point scales h_j = h * s_j, s_j the spacing over its median
+// (clamped to [1/kAdaptiveRange, kAdaptiveRange]) smoothed twice by a Gaussian average at the
+// point's own scale (within 2 h_j, weights exp(-d^2 / h_j^2)): the notes (1.3) warn that the
+// adaptation must itself be smooth, or the surface is not a manifold where the density jumps.
+// Per point, so the result does not depend on the thread count.
+void AdaptiveScales(const UniformGrid& grid, std::span<const Vec3f> pts, const SamplingDensity& density, float h,
+                    std::vector<float>* scale) {
+    const std::size_t n = pts.size();
+    const float med = density.median_spacing > 0 ? density.median_spacing : 1.0f;
+    std::vector<float> s(n), t(n);
+    for (std::size_t i = 0; i < n; ++i)
+        s[i] = std::clamp(density.spacing[i] / med, 1.0f / kAdaptiveRange, kAdaptiveRange);
+    for (int pass = 0; pass < 2; ++pass) {
+        tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 1024), [&](const tbb::blocked_range<std::size_t>& r) {
+            for (std::size_t i = r.begin(); i != r.end(); ++i) {
+                const float hi = h * s[i], inv = 1.0f / (hi * hi);
+                double sw = 0, ss = 0;
+                grid.ForEachWithin(pts[i], std::min(2.0f * hi, grid.cell()), [&](std::uint32_t j, const Vec3f&, float d2) {
+                    const double w = std::exp(-double(d2) * inv);
+                    sw += w;
+                    ss += w * s[j];
+                });
+                t[i] = sw > 0 ? static_cast<float>(ss / sw) : s[i];
+            }
+        });
+        s.swap(t);
+    }
+    scale->resize(n);
+    for (std::size_t i = 0; i < n; ++i) (*scale)[i] = h * s[i];
+}
+}  // namespace
 
 AaSurface::AaSurface(const PointCloud& cloud, const AaOptions& options)
     : impl_(std::make_unique<Impl>(cloud, options)) {
@@ -100,7 +146,45 @@ AaSurface::AaSurface(const PointCloud& cloud, const AaOptions& options)
     if (o.h == 0) o.h = DefaultScale(density);
     if (!(o.h > 0)) throw Error(ErrorCode::kInvalidArgument, "cannot derive h from the cloud (all points coincide); pass h");
     if (o.precision == 0) o.precision = 1e-3f * o.h;
-    impl_->grid = std::make_unique<UniformGrid>(cloud.positions, o.cutoff * o.h);
+    if (o.bandwidth == AaBandwidth::kFixed) {
+        impl_->grid = std::make_unique<UniformGrid>(cloud.positions, o.cutoff * o.h);
+    } else {
+        // The dense grid answers any radius; the sparse one only up to its cell, which must then
+        // reach the largest scale's cutoff.
+        float cell = o.cutoff * o.h;
+        if (!UniformGrid::FitsDense(cloud.Bounds(), cloud.size(), cell)) cell *= kAdaptiveRange;
+        impl_->grid = std::make_unique<UniformGrid>(cloud.positions, cell);
+        AdaptiveScales(*impl_->grid, cloud.positions, density, o.h, &impl_->scale);
+        const std::size_t n = cloud.size();
+        impl_->inv_h2.resize(n);
+        for (std::size_t i = 0; i < n; ++i) impl_->inv_h2[i] = 1.0f / (impl_->scale[i] * impl_->scale[i]);
+        impl_->max_scale = *std::max_element(impl_->scale.begin(), impl_->scale.end());
+        // Gather scale of ball i: the largest h_j within cutoff x h_i + rho_i (+ the ball_h
+        // widening) of its centre; a point farther out would need a scale that large to reach a
+        // fit in the ball with a weight above exp(-cutoff^2).
+        impl_->reach.resize(n);
+        const UniformGrid& g = *impl_->grid;
+        tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 1024), [&](const tbb::blocked_range<std::size_t>& r) {
+            for (std::size_t i = r.begin(); i != r.end(); ++i) {
+                float m = impl_->scale[i];
+                const float rad = o.cutoff * m + std::max(impl_->ball_radius[i], o.ball_h * m);
+                g.ForEachWithin(cloud.positions[i], g.dense() ? rad : std::min(rad, g.cell()),
+                                [&](std::uint32_t j, const Vec3f&, float) { m = std::max(m, impl_->scale[j]); });
+                impl_->reach[i] = m;
+            }
+        });
+    }
+    if (o.ball_h > 0)
+        for (std::size_t i = 0; i < cloud.size(); ++i)
+            impl_->ball_radius[i] = std::max(impl_->ball_radius[i], o.ball_h * PointScale(static_cast<std::uint32_t>(i)));
+    if (o.normal_sigma > 0) {
+        if (cloud.has_normals()) {
+            impl_->weight_normals = cloud.normals;
+        } else {
+            const KdTree tree(cloud.positions);
+            impl_->weight_normals = EstimateNormals(tree).normals;
+        }
+    }
     impl_->id = next_surface_id.fetch_add(1, std::memory_order_relaxed);
     impl_->centers.resize(cloud.size());
     impl_->center_state.reset(new std::atomic<std::uint8_t>[cloud.size()]);
@@ -114,6 +198,8 @@ float AaSurface::precision() const { return impl_->opt.precision; }
 const AaOptions& AaSurface::options() const { return impl_->opt; }
 const PointCloud& AaSurface::cloud() const { return impl_->cloud; }
 float AaSurface::BallRadius(std::uint32_t i) const { return impl_->ball_radius[i]; }
+float AaSurface::PointScale(std::uint32_t i) const { return impl_->scale.empty() ? impl_->opt.h : impl_->scale[i]; }
+const std::vector<Vec3f>& AaSurface::WeightNormals() const { return impl_->weight_normals; }
 
 namespace {
 // The points within `reach` of a centre c, in the grid's cell order, as structure of arrays: a
@@ -172,12 +258,11 @@ void FillSuperset(const UniformGrid& grid, std::uint64_t owner, const Vec3f& c, 
     s.owner = owner;
 }
 
-// The neighbours within cutoff * h of o (a point in float, so that offsets are float
-// differences), relative to o, with their Gaussian weights and weighted moments about o: the
-// first step of both FitAt (eq. 8, 9) and Evaluate (eq. 1-4). From the thread's superset when
-// it covers the ball (dense grids), else from the grid.
-WeightedMoments GatherAround(const UniformGrid& grid, std::uint64_t owner, const Vec3f& o, float radius, double h,
-                             NeighborBatch& nb) {
+// The neighbours within `radius` of o (a point in float, so that offsets are float
+// differences), relative to o: the first step of both FitAt (eq. 8, 9) and Evaluate (eq. 1-4).
+// From the thread's superset when it covers the ball (dense grids), else from the grid. `h`:
+// how far beyond the gather a new superset reaches (kSupersetMargin x h).
+void Gather(const UniformGrid& grid, std::uint64_t owner, const Vec3f& o, float radius, double h, NeighborBatch& nb) {
     nb.clear();
     if (grid.dense()) {
         Superset& s = tls_superset;
@@ -224,14 +309,36 @@ WeightedMoments GatherAround(const UniformGrid& grid, std::uint64_t owner, const
                           radius * radius);
         });
     }
+}
+
+// Gathers the neighbours of o and weighs them: theta(d) = exp(-d^2/h^2) with the one h, or
+// theta_j with each point's h_j (adaptive), within cutoff x the scale; for a fit serving ball
+// `ball` (-1: none) with normal-aware weights, times exp(-((1 - n_j . n_ball) / sigma)^2). Returns
+// the weighted moments about o (zero weight when fewer than 3 points are near). (A template so
+// that it can take the surface's private Impl.)
+template <typename Impl>
+WeightedMoments GatherWeighted(const Impl& im, const Vec3f& o, float cutoff, std::int64_t ball, NeighborBatch& nb) {
+    const AaOptions& opt = im.opt;
+    const float H = im.scale.empty() ? opt.h : ball >= 0 ? im.reach[std::size_t(ball)] : im.max_scale;
+    Gather(*im.grid, im.id, o, cutoff * H, H, nb);
     if (nb.size() < 3) return {};
-    nb.Weights(h);
+    if (im.scale.empty()) nb.Weights(opt.h);
+    else nb.WeightsPerPoint(im.inv_h2.data(), cutoff * cutoff);
+    if (ball >= 0 && !im.weight_normals.empty()) {
+        const Vec3f nr = im.weight_normals[std::size_t(ball)];
+        const float inv = 1.0f / opt.normal_sigma;
+        const std::size_t n = nb.size();
+        for (std::size_t j = 0; j < n; ++j) {
+            const float c = (1.0f - im.weight_normals[nb.index[j]].dot(nr)) * inv;
+            nb.w[j] *= std::exp(-c * c);
+        }
+    }
     return WeightedMoments::Of(nb);
 }
 
 }  // namespace
 
-bool AaSurface::FitAt(const Vec3d& r, Fit* fit, float cutoff, bool attributes) const {
+bool AaSurface::FitAt(const Vec3d& r, Fit* fit, float cutoff, bool attributes, std::uint32_t ball) const {
     const AaOptions& o = impl_->opt;
     const PointCloud& cloud = impl_->cloud;
     NeighborBatch& nb = tls_batch;
@@ -239,7 +346,7 @@ bool AaSurface::FitAt(const Vec3d& r, Fit* fit, float cutoff, bool attributes) c
     // Step 1, support plane: B = sum theta_j (p_j - r)(p_j - r)^T (eq. 8, 9), about r rounded to
     // float (within 1e-7 relative of r; the frame's origin is that point).
     const Vec3f rf = r.cast<float>();
-    const WeightedMoments wm = GatherAround(*impl_->grid, impl_->id, rf, cutoff * o.h, o.h, nb);
+    const WeightedMoments wm = GatherWeighted(*impl_, rf, cutoff, ball, nb);
     if (!(wm.w > 1e-12)) return false;
     const std::size_t m = nb.size();
     Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es;
@@ -273,7 +380,7 @@ AaEvaluation AaSurface::Evaluate(const Vec3d& x) const {
     NeighborBatch& nb = tls_batch;
     // eq. 1-4: the weighted mean a(x) and the covariances in directions through x.
     const Vec3f xf = x.cast<float>();
-    const WeightedMoments wm = GatherAround(*impl_->grid, impl_->id, xf, o.cutoff * o.h, o.h, nb);
+    const WeightedMoments wm = GatherWeighted(*impl_, xf, o.cutoff, -1, nb);
     if (!(wm.w > 1e-12)) return ev;
     Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es;
     es.computeDirect(wm.Second());
@@ -312,7 +419,7 @@ bool AaSurface::CenterFit(std::uint32_t ball, Fit* out, AaCounters* counters) co
     }
     ++counters->evaluations;
     CenterEntry fresh{};
-    const bool ok = FitAt(center, out, kCenterCutoff, false);
+    const bool ok = FitAt(center, out, kCenterCutoff, false, ball);
     if (ok) {
         for (int i = 0; i < 3; ++i) fresh.n[i] = static_cast<float>(out->frame.n[i]);
         for (int i = 0; i < 3; ++i) fresh.u[i] = static_cast<float>(out->frame.u[i]);
@@ -356,7 +463,7 @@ std::optional<AaHit> AaSurface::IntersectInBall(std::uint32_t ball, const Vec3d&
         ++counters->iterations;
         ++counters->evaluations;
         const Vec3d r = o + t * d;
-        if (!FitAt(r, &fit, opt.cutoff, true)) return std::nullopt;
+        if (!FitAt(r, &fit, opt.cutoff, true, ball)) return std::nullopt;
         nroots = IntersectPoly(fit.frame, fit.g, o, d, &r0, &r1);
         if (nroots == 0) return std::nullopt;
         double tn = r0;

@@ -10,6 +10,7 @@
 #include <limits>
 #include <memory>
 #include <optional>
+#include <vector>
 
 #include "surfel/base/point_cloud.h"
 #include "surfel/surface/poly_fit.h"
@@ -21,19 +22,51 @@ inline constexpr int kMaxSurfaceIterations = 1000;
 /// Most neighbours a ball radius may enclose (AaOptions::ball_k; the neighbour search's limit).
 inline constexpr int kMaxBallNeighbors = 64;
 
+/// How the Gaussian scale varies over the cloud (AaOptions::bandwidth).
+enum class AaBandwidth {
+    /// One h for every point (the paper's theta(d) = exp(-d^2/h^2)).
+    kFixed,
+    /// A scale h_j per point from the local sampling density (course notes 1.3, adaptive MLS):
+    /// h_j = h * eta~_j / median(eta), eta the spacing of the ball_k-th neighbour, clamped to
+    /// [1/kAdaptiveRange, kAdaptiveRange] x the median and smoothed twice over the neighbourhood
+    /// (a Gaussian average at the point's own scale), so that the weights, and with them the
+    /// surface, vary smoothly. Point j weighs theta_j(x) = exp(-|x - p_j|^2 / h_j^2) wherever x
+    /// is, so f(x) stays one smooth function (no switch of scale between balls).
+    kAdaptive,
+};
+
+/// AaBandwidth::kAdaptive: the per-point scale lies within [1/kAdaptiveRange, kAdaptiveRange] x h.
+inline constexpr float kAdaptiveRange = 3.0f;
+/// AaOptions::normal_sigma of the normal-aware weights when they are asked for by name (the CLI's
+/// `--weights normal`, the job's NORMAL_AWARE): the best of 0.25, 0.5 and 1 on the buddha,
+/// dragon and Lucy (bench/results-render-mesh.md).
+inline constexpr float kNormalAwareSigma = 0.5f;
+
 struct AaOptions {
-    float h = 0.0f;             ///< Gaussian scale; 0 = DefaultScale (2 x median spacing).
+    float h = 0.0f;             ///< Gaussian scale; 0 = DefaultScale (2 x median spacing). Adaptive: the median point's scale.
     int degree = 2;             ///< Local polynomial degree (0 = the paper's analysis, 1, 2).
     float cutoff = 3.0f;        ///< Points farther than cutoff * h are ignored (weight < exp(-9)).
     float precision = 0.0f;     ///< Accept when |c| < precision (absolute); 0 = 1e-3 * h (paper, section 6).
     int max_iterations = 20;    ///< Iterations per ball before giving up.
     float normal_ratio = 0.5f;  ///< Normal well-defined when lambda0 < normal_ratio * lambda1 (Definition 1).
     int ball_k = 6;             ///< Ball radius rho_i encloses the ball_k nearest neighbours (section 5).
+    AaBandwidth bandwidth = AaBandwidth::kFixed;  ///< One h, or a smooth h_j per point (see AaBandwidth).
+    /// Region of trust (section 5) at least this many h_j wide: rho_i = max(r_k(i), ball_h * h_i).
+    /// 0 = the paper's ball alone. Where samples are sparse the k-th neighbour's ball can be too
+    /// small for the iteration to settle in before it leaves the ball (a hole).
+    float ball_h = 0.0f;
+    /// Thin sheets: 0 = the paper's weights. > 0: in the render's fits each neighbour's weight
+    /// is also multiplied by exp(-((1 - n_j . n_i) / normal_sigma)^2), n_i the oriented normal of
+    /// the ball the ray is in and n_j the neighbour's (the cloud's own normals, else estimated and
+    /// oriented with EstimateNormals): where the two sheets of a thin part lie within the
+    /// support, the fit keeps to the sheet of the ball (robust MLS: normal-aware weights).
+    float normal_sigma = 0.0f;
 
     /// Throws Error(kInvalidArgument, "<field>: <what>") for the first bad field, named as in the
     /// render job spec: "h" (finite, >= 0; 0 = auto), "precision" (finite, >= 0; 0 = auto),
     /// "degree" (0..2), "max_iterations" (1..kMaxSurfaceIterations), and, not in the job spec,
-    /// "cutoff" (finite, >= 1), "normal_ratio" (0..1), "ball_k" (1..kMaxBallNeighbors).
+    /// "cutoff" (finite, >= 1), "normal_ratio" (0..1), "ball_k" (1..kMaxBallNeighbors), "bandwidth"
+    /// (a known kind), "ball_h" (0..10), "normal_sigma" (0..10).
     /// Example: "degree: must lie in 0..2, got 3". The default-constructed options are valid.
     void Validate() const;
 };
@@ -87,6 +120,11 @@ public:
 
     /// Ball i of the bounding volume (section 5): centre p_i, radius rho_i.
     float BallRadius(std::uint32_t i) const;
+    /// The Gaussian scale of point i: h() when the bandwidth is fixed, h_i when adaptive.
+    float PointScale(std::uint32_t i) const;
+    /// The normals the normal-aware weights use (the cloud's or estimated); empty when
+    /// options().normal_sigma = 0.
+    const std::vector<Vec3f>& WeightNormals() const;
 
     /// Evaluates a(x), n(x), f(x) (section 3).
     AaEvaluation Evaluate(const Vec3d& x) const;
@@ -117,7 +155,8 @@ public:
 private:
     struct Fit;
     /// `attributes`: also the reference normal and colour (only converged fits need them).
-    bool FitAt(const Vec3d& r, Fit* fit, float cutoff, bool attributes) const;
+    /// `ball`: the ball the fit serves (its gather reach and, with normal weights, its normal).
+    bool FitAt(const Vec3d& r, Fit* fit, float cutoff, bool attributes, std::uint32_t ball) const;
     /// The ball centre's support plane and polynomial (no attributes), from the per-ball cache;
     /// false when that fit is not defined.
     bool CenterFit(std::uint32_t ball, Fit* out, AaCounters* counters) const;

@@ -105,6 +105,20 @@ struct NeighborBatch {
     void Weights(double h) {
         GaussWeights(d2.data(), static_cast<float>(1.0 / (h * h)), w.data(), size());
     }
+    /// Per-point scales (AaBandwidth::kAdaptive): w_j = exp(-d2_j * inv_h2[index_j]), and 0 where
+    /// d2_j * inv_h2[index_j] > cut2 (each point's own cutoff, so the weights do not depend on the
+    /// gather's radius as long as it reaches every point's cutoff).
+    void WeightsPerPoint(const float* inv_h2, float cut2) {
+        const std::size_t n = size();
+        float* T = scaled.data();
+        const float* D = d2.data();
+        const std::uint32_t* I = index.data();
+        for (std::size_t i = 0; i < n; ++i) T[i] = D[i] * inv_h2[I[i]];
+        GaussWeights(T, 1.0f, w.data(), n);
+        float* W = w.data();
+#pragma omp simd
+        for (std::size_t i = 0; i < n; ++i) W[i] = T[i] <= cut2 ? W[i] : 0.0f;
+    }
     /// lx, ly, lz = coordinates of (x, y, z) - o along the axes u, v, n.
     void ToLocal(const Vec3d& o, const Vec3d& u, const Vec3d& v, const Vec3d& nrm) {
         const std::size_t n = size();
@@ -127,8 +141,10 @@ private:
         for (auto* v : {&lx, &ly, &lz}) v->resize(cap);
         d2.resize(cap);
         w.resize(cap);
+        scaled.resize(cap);
         index.resize(cap);
     }
+    std::vector<float> scaled;  // scratch of WeightsPerPoint
     std::size_t n_ = 0;
 };
 

@@ -31,6 +31,9 @@ constexpr std::uint64_t kPngBytesPerPixel = 6;       ///< 8-bit RGB buffer + the
 void CheckProtoOnly(const v1::RenderJob& job) {
     if (!v1::RenderJob::Degree_IsValid(job.degree())) Bad("degree", "unknown degree " + std::to_string(job.degree()));
     if (!v1::RenderJob::Format_IsValid(job.format())) Bad("format", "unknown format " + std::to_string(job.format()));
+    if (!v1::RenderJob::Bandwidth_IsValid(job.bandwidth()))
+        Bad("bandwidth", "unknown bandwidth " + std::to_string(job.bandwidth()));
+    if (!v1::RenderJob::Weights_IsValid(job.weights())) Bad("weights", "unknown weights " + std::to_string(job.weights()));
     for (int i = 0; i < job.lights_size(); ++i)
         if (!v1::Light::Kind_IsValid(job.lights(i).kind()))
             Bad("lights[" + std::to_string(i) + "].kind", "unknown kind " + std::to_string(job.lights(i).kind()));
@@ -85,6 +88,18 @@ RenderOptions ToRenderOptions(const v1::RenderJob& job, const BoundingBox& bound
     o.surface.precision = static_cast<float>(job.precision());
     if (job.degree() != v1::RenderJob::DEGREE_UNSPECIFIED) o.surface.degree = static_cast<int>(job.degree()) - 1;
     if (job.max_iterations()) o.surface.max_iterations = job.max_iterations();
+    switch (job.bandwidth()) {
+        case v1::RenderJob::BANDWIDTH_UNSPECIFIED: break;
+        case v1::RenderJob::FIXED: o.surface.bandwidth = AaBandwidth::kFixed; break;
+        case v1::RenderJob::ADAPTIVE: o.surface.bandwidth = AaBandwidth::kAdaptive; break;
+        default: break;  // CheckProtoOnly refused it
+    }
+    switch (job.weights()) {
+        case v1::RenderJob::WEIGHTS_UNSPECIFIED: break;
+        case v1::RenderJob::PLAIN: o.surface.normal_sigma = 0.0f; break;
+        case v1::RenderJob::NORMAL_AWARE: o.surface.normal_sigma = kNormalAwareSigma; break;
+        default: break;  // CheckProtoOnly refused it
+    }
     return o;
 }
 
