@@ -80,6 +80,13 @@ int main(int argc, char** argv) {
     pthread_sigmask(SIG_BLOCK, &signals, nullptr);
 
     try {
+        // Refused before anything is opened: a SQLite URL or directory would otherwise be
+        // created or migrated by a process that then refuses to use it.
+        if (!store_url.starts_with("postgres://") && !store_url.starts_with("postgresql://"))
+            throw Error(ErrorCode::kInvalidArgument,
+                        "--store " + store_url +
+                            ": surfel-worker needs a shared store (postgres://...); a SQLite "
+                            "server runs its own jobs");
         std::unique_ptr<worker::Store> store =
             worker::OpenStore(store_url, worker::BlobDirFromFlag(blobs, ""), blobs);
         if (!store->shared())
