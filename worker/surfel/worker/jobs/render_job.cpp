@@ -175,15 +175,33 @@ public:
         if (cloud.empty()) throw Error(ErrorCode::kInvalidArgument, "render: the cloud has no points");
         const bool csg = IsCsg(job);
         const BooleanOptions csg_options = csg ? ToCsgOptions(job) : BooleanOptions{};
-        // The default camera frames the scene: both solids of a CSG render (B placed).
+        // The default camera frames what the CSG render can show: A ∪ B for a union, A for
+        // A − B, B (placed) for B − A, the overlap of the two boxes for an intersection (both
+        // boxes when they do not overlap: the image is then empty anyway).
         BoundingBox bounds = cloud.Bounds();
         if (csg && !clouds.at(1)->empty()) {
             const BoundingBox bb = clouds.at(1)->Bounds();
             const Similarity& T = csg_options.transform;
+            BoundingBox placed_b;
             for (int c = 0; c < 8; ++c) {
                 const Vec3d corner((c & 1) ? bb.max.x() : bb.min.x(), (c & 2) ? bb.max.y() : bb.min.y(),
                                    (c & 4) ? bb.max.z() : bb.min.z());
-                bounds.Extend((T.scale * (T.rotation * corner) + T.translation).cast<float>());
+                placed_b.Extend((T.scale * (T.rotation * corner) + T.translation).cast<float>());
+            }
+            BoundingBox both = bounds;
+            both.Extend(placed_b.min);
+            both.Extend(placed_b.max);
+            switch (BooleanOpFromProto(job.csg_op(), "render.csg_op")) {
+                case BooleanOp::kUnion: bounds = both; break;
+                case BooleanOp::kDifference: break;  // inside A
+                case BooleanOp::kReverseDifference: bounds = placed_b; break;
+                case BooleanOp::kIntersection: {
+                    BoundingBox overlap;
+                    overlap.min = bounds.min.cwiseMax(placed_b.min);
+                    overlap.max = bounds.max.cwiseMin(placed_b.max);
+                    bounds = overlap.empty() ? both : overlap;
+                    break;
+                }
             }
         }
         const RenderOptions options = ToRenderOptions(job, bounds);
