@@ -82,6 +82,7 @@ struct Flags {
     double max_upload_mb = 2048;
     std::uint64_t max_points = 50'000'000;
     double max_job_memory_mb = -1;  // -1: 3/4 of the memory available at start
+    int job_nice = 10;
     std::size_t max_uploads = 64;
     std::string metrics;
     std::string port_file;
@@ -179,6 +180,11 @@ int main(int argc, char** argv) {
         ->check(CLI::Range(1, 100000));
     app.add_option("--max-upload-mb", f.max_upload_mb, "Largest upload in MiB")->default_val(2048)->check(CLI::PositiveNumber);
     app.add_option("--max-points", f.max_points, "Largest accepted point count")->default_val(50'000'000);
+    app.add_option("--job-nice", f.job_nice,
+                   "Niceness added to job threads (and the TBB/Embree threads they start), so that API "
+                   "calls stay responsive while jobs use the CPU; 0 = none")
+        ->default_val(10)
+        ->check(CLI::Range(0, 19));
     app.add_option("--max-job-memory", f.max_job_memory_mb,
                    "Largest memory estimate of a job in MiB (docs/memory.md): above it, or above what running "
                    "jobs leave of it, Submit answers RESOURCE_EXHAUSTED; 0 = no limit. Default: 3/4 of the "
@@ -276,6 +282,7 @@ int main(int argc, char** argv) {
         mo.max_attempts = f.max_attempts;
         mo.max_queued = f.max_queued;
         mo.max_points = f.max_points;
+        mo.job_nice = f.job_nice;
         mo.max_job_memory = f.max_job_memory_mb < 0
                                 ? worker::DefaultMaxJobMemory()
                                 : static_cast<std::uint64_t>(f.max_job_memory_mb * 1024 * 1024);

@@ -23,6 +23,7 @@ int main(int argc, char** argv) {
     int max_attempts = 3;
     std::uint64_t max_points = 50'000'000;
     double max_job_memory_mb = -1;  // -1: 3/4 of the memory available at start
+    int job_nice = 10;
     bool json_logs = false;
     app.add_option("--store", store_url, "The shared store: postgres://user@host:port/db")
         ->required();
@@ -47,6 +48,11 @@ int main(int argc, char** argv) {
         ->check(CLI::NonNegativeNumber);
     app.add_option("--max-points", max_points, "Largest point count a job may load")
         ->default_val(50'000'000);
+    app.add_option("--job-nice", job_nice,
+                   "Niceness added to job threads (and the TBB/Embree threads they start), so that API "
+                   "calls stay responsive while jobs use the CPU; 0 = none")
+        ->default_val(10)
+        ->check(CLI::Range(0, 19));
     app.add_option("--max-job-memory", max_job_memory_mb,
                    "Largest memory estimate in MiB of a job run here (docs/memory.md); a claimed job above "
                    "it fails with RESOURCE_EXHAUSTED before its work; 0 = no limit. Default: 3/4 of the "
@@ -100,6 +106,7 @@ int main(int argc, char** argv) {
         mo.max_attempts = max_attempts;
         mo.max_points = max_points;
         mo.worker_name = name;
+        mo.job_nice = job_nice;
         mo.max_job_memory = max_job_memory_mb < 0
                                 ? worker::DefaultMaxJobMemory()
                                 : static_cast<std::uint64_t>(max_job_memory_mb * 1024 * 1024);

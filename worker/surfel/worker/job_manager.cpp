@@ -3,9 +3,14 @@
 #include <google/protobuf/io/coded_stream.h>
 #include <google/protobuf/io/zero_copy_stream_impl_lite.h>
 #include <spdlog/spdlog.h>
+#include <sys/resource.h>
+#include <sys/syscall.h>
+#include <unistd.h>
 
 #include <algorithm>
+#include <cerrno>
 #include <chrono>
+#include <cstring>
 #include <random>
 
 #include "surfel/base/error.h"
@@ -63,6 +68,16 @@ void SetResult(v1::Job& job, const JobOutput& out) {
     r->set_time_ms(out.time_ms);
     job.set_fraction(1.0);
     job.set_stage("done");
+}
+
+void LowerJobThreadPriority(int nice) {
+    if (nice <= 0) return;
+    const auto tid = static_cast<id_t>(::syscall(SYS_gettid));
+    errno = 0;
+    const int now = ::getpriority(PRIO_PROCESS, tid);
+    if (now == -1 && errno != 0) return;
+    if (::setpriority(PRIO_PROCESS, tid, std::min(19, now + std::min(nice, 19))) != 0)
+        spdlog::warn("job thread: cannot lower its priority by {}: {}", nice, std::strerror(errno));
 }
 
 }  // namespace detail
@@ -300,6 +315,7 @@ std::size_t JobManager::Running() const {
 }
 
 void JobManager::WorkerLoop() {
+    detail::LowerJobThreadPriority(options_.job_nice);
     // The queue's head starts when its estimate fits in what the running jobs leave of
     // max_job_memory (or nothing runs): FIFO, so a large job is not starved by small ones.
     auto fits = [&] {

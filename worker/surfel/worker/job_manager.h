@@ -52,6 +52,10 @@ struct ManagerOptions {
     /// what is left (docs/memory.md). Shared queue: Submit refuses above it, and a claimed job
     /// above the claiming process's limit fails with RESOURCE_EXHAUSTED before its work.
     std::uint64_t max_job_memory = 0;
+    /// Niceness added to each job thread (and so to the TBB and Embree threads it starts, which
+    /// inherit it): under load the API's calls, uploads and event streams keep their CPU share
+    /// while jobs run on what is left (bench/results-load.md). 0 = as the process; 0..19.
+    int job_nice = 10;
     /// Shared queue: the lease owner's prefix (default "<host>:<pid>"); thread i appends "/i".
     std::string worker_name;
 };

@@ -41,4 +41,8 @@ std::string StoreResult(Store& store, const std::string& job_id, std::string_vie
 /// time) and marks it done (fraction 1, stage "done"); the state is the caller's to set.
 void SetResult(v1::Job& job, const JobOutput& out);
 
+/// Adds `nice` (0..19) to the calling thread's niceness (Linux: per thread). Best effort: a
+/// failure is logged, never fatal.
+void LowerJobThreadPriority(int nice);
+
 }  // namespace surfel::worker::detail

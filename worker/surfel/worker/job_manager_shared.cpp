@@ -311,6 +311,7 @@ v1::Job JobManager::SharedCancel(const std::string& id) {
 // ---- claiming and running
 
 void JobManager::ClaimLoop(std::size_t index) {
+    detail::LowerJobThreadPriority(options_.job_nice);
     const std::string owner = origin_ + "/" + std::to_string(index);
     OutageLog outage;
     std::int64_t backoff_ms = 100;
