@@ -16,6 +16,7 @@
 #include "surfel/base/error.h"
 #include "surfel/base/shapes.h"
 #include "surfel/boolean/boolean.h"
+#include "../even_solids.h"
 #include "surfel/io/cloud_io.h"
 #include "surfel/spatial/kd_tree.h"
 #include "surfel/surface/local_analysis.h"
@@ -130,35 +131,8 @@ PointCloud Sample(Shape shape, std::size_t n, double scale, std::uint64_t seed,
 
 // Evenly sampled inputs, so that "no holes within 2 spacings" measures the boolean, not the
 // gaps of a random sampling (uniformly random samples leave empty disks of 2.5 spacings).
-// A Fibonacci sphere of radius `scale`, exact outward normals.
-PointCloud EvenSphere(std::size_t n, double scale) {
-    PointCloud c;
-    const double golden = kPi * (3.0 - std::sqrt(5.0));
-    for (std::size_t i = 0; i < n; ++i) {
-        const double z = 1.0 - (2.0 * i + 1.0) / n, r = std::sqrt(1.0 - z * z), phi = golden * i;
-        const Vec3d u(r * std::cos(phi), r * std::sin(phi), z);
-        c.positions.push_back((scale * u).cast<float>());
-        c.normals.push_back(u.cast<float>());
-    }
-    return c;
-}
-// The cube [-scale, scale]^3, an m x m grid of cell centres on each face, face normals.
-PointCloud EvenBox(int m, double scale) {
-    PointCloud c;
-    for (int axis = 0; axis < 3; ++axis)
-        for (int sign = -1; sign <= 1; sign += 2)
-            for (int i = 0; i < m; ++i)
-                for (int j = 0; j < m; ++j) {
-                    Vec3d p, n = Vec3d::Zero();
-                    p[axis] = sign * scale;
-                    p[(axis + 1) % 3] = scale * (2.0 * (i + 0.5) / m - 1.0);
-                    p[(axis + 2) % 3] = scale * (2.0 * (j + 0.5) / m - 1.0);
-                    n[axis] = sign;
-                    c.positions.push_back(p.cast<float>());
-                    c.normals.push_back(n.cast<float>());
-                }
-    return c;
-}
+using test::EvenBox;
+using test::EvenSphere;
 
 // The cylinder of radius `scale`, z in [-scale, scale]: rings about `spacing` apart on the side
 // and concentric rings on the caps, exact outward normals.

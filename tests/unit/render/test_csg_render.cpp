@@ -16,6 +16,7 @@
 #include "surfel/boolean/boolean.h"
 #include "surfel/render/csg_render.h"
 #include "surfel/render/renderer.h"
+#include "../even_solids.h"
 
 namespace surfel {
 namespace {
@@ -24,36 +25,8 @@ constexpr double kPi = 3.14159265358979323846;
 
 // ---- Inputs: evenly spaced samples with exact outward normals ----------------------------------
 
-// A Fibonacci sphere of radius 1 at the origin.
-PointCloud EvenSphere(std::size_t n) {
-    PointCloud c;
-    const double golden = kPi * (3.0 - std::sqrt(5.0));
-    for (std::size_t i = 0; i < n; ++i) {
-        const double z = 1.0 - (2.0 * i + 1.0) / n, r = std::sqrt(1.0 - z * z), phi = golden * i;
-        const Vec3d u(r * std::cos(phi), r * std::sin(phi), z);
-        c.positions.push_back(u.cast<float>());
-        c.normals.push_back(u.cast<float>());
-    }
-    return c;
-}
-
-// The cube [-1, 1]^3: an m x m grid of cell centres on each face.
-PointCloud EvenBox(int m) {
-    PointCloud c;
-    for (int axis = 0; axis < 3; ++axis)
-        for (int sign = -1; sign <= 1; sign += 2)
-            for (int i = 0; i < m; ++i)
-                for (int j = 0; j < m; ++j) {
-                    Vec3d p, n = Vec3d::Zero();
-                    p[axis] = sign;
-                    p[(axis + 1) % 3] = 2.0 * (i + 0.5) / m - 1.0;
-                    p[(axis + 2) % 3] = 2.0 * (j + 0.5) / m - 1.0;
-                    n[axis] = sign;
-                    c.positions.push_back(p.cast<float>());
-                    c.normals.push_back(n.cast<float>());
-                }
-    return c;
-}
+using test::EvenBox;
+using test::EvenSphere;
 
 // ---- The exact solids and their ray cast --------------------------------------------------------
 
