@@ -75,6 +75,8 @@ void BooleanOptions::Validate() const {
     CheckRange("coincident_tolerance", coincident_tolerance, 0.0, kMaxCoincidentTolerance);
     if (upsample_ratio != 0)
         CheckRange("upsample_ratio", upsample_ratio, kMinUpsampleRatio, kMaxUpsampleRatio);
+    CheckAtLeast("blend_radius", blend_radius, 0.0);
+    CheckRange("blend_iterations", blend_iterations, kMinBlendIterations, kMaxBlendIterations);
 }
 
 namespace {
@@ -707,6 +709,7 @@ BooleanResult Boolean(const PointCloud& a, const PointCloud& b, BooleanOp op,
     BooleanResult result;
     BooleanReport& rep = result.report;
     rep.op = BooleanOpName(op);
+    rep.blend_radius = options.blend_radius;
     rep.input_points_a = a.size();
     rep.input_points_b = b.size();
 
@@ -789,6 +792,10 @@ BooleanResult Boolean(const PointCloud& a, const PointCloud& b, BooleanOp op,
         out.Add(s.q, flip_a ? Vec3f(-s.na) : s.na, s.eta, 2, flip_b ? Vec3f(-s.nb) : s.nb);
     if (out.cloud.empty()) rep.notes.push_back("the result is empty");
     result.cloud = out.Finish();
+    if (options.blend_radius > 0.0) {
+        rep.blend = BlendCreases(result.cloud, options.blend_radius, options.blend_iterations, &tracker);
+        if (curve.empty()) rep.notes.push_back("no intersection curve: nothing to blend");
+    }
     tracker.Advance(1.0);
     rep.time_ms = watch.ElapsedMs();
     return result;

@@ -13,6 +13,7 @@
 
 #include "surfel/base/point_cloud.h"
 #include "surfel/base/progress.h"
+#include "surfel/boolean/blend.h"
 #include "surfel/surface/local_analysis.h"
 #include "surfel/surface/mls.h"
 
@@ -121,12 +122,20 @@ struct BooleanOptions {
     /// to kMaxUpsampleFactor, MLS-projected and classified. 0 = off, else
     /// kMinUpsampleRatio..kMaxUpsampleRatio.
     double upsample_ratio = 1.5;
+    /// Particle-based blending of the creases (3.1.4, BlendCreases): the samples within
+    /// blend_radius (model units, A's frame) of the intersection curve relax into a smooth blend.
+    /// 0 = off: sharp creases as surfel pairs.
+    double blend_radius = 0.0;
+    /// Simulation steps of the blending, kMinBlendIterations..kMaxBlendIterations; more give a
+    /// rounder blend (the notes: "the degree of smoothness can be controlled by the number of
+    /// iterations").
+    int blend_iterations = kDefaultBlendIterations;
 
     /// Throws Error(kInvalidArgument, "<field>: <what>") for the first bad field:
     /// "transform.rotation", "transform.translation", "transform.scale", the MLS fields as
     /// "mls.<field>", the normal fields as "normals.<field>", "curve_band",
     /// "max_newton_iterations", "newton_tolerance", "max_refinement_rounds", "max_open_area",
-    /// "coincident_tolerance", "upsample_ratio".
+    /// "coincident_tolerance", "upsample_ratio", "blend_radius", "blend_iterations".
     void Validate() const;
 };
 
@@ -162,6 +171,8 @@ struct BooleanReport {
     bool normals_estimated_a = false, normals_estimated_b = false;
     bool overlap = true;             ///< false: the bounding boxes are disjoint.
     std::vector<std::string> notes;  ///< E.g. the trivial answer for disjoint inputs.
+    double blend_radius = 0.0;       ///< BooleanOptions::blend_radius.
+    BlendReport blend;               ///< What the blending did (all 0 without blend_radius).
     double time_ms = 0.0;
 };
 

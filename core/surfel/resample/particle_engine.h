@@ -47,6 +47,12 @@ struct ParticleParams {
 /// (notes 1.1.1, k = 6) and per-sample spreading weights. Run() may be called many times.
 class ParticleEngine {
 public:
+    /// The linear repulsion's step (eq. 2.2-2.3): a lone neighbour at distance d < r moves a
+    /// particle by kRepulsionGain (r - d), and no step is longer than kMaxStep r. Shared with
+    /// the blending of boolean creases (core/surfel/boolean/blend.cpp).
+    static constexpr double kRepulsionGain = 0.3;
+    static constexpr double kMaxStep = 0.5;
+
     /// `normals`: one oriented unit normal per input point. `variation`: sigma_n per point
     /// (notes 1.2), used when `adaptive` (2.3.4: repulsion radius scaled by 1 / sigma_n relative
     /// to the median, clamped to [1/2, 2]); may be empty otherwise. Needs at least 2 points.

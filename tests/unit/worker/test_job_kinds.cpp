@@ -257,6 +257,14 @@ TEST(BooleanJob, ValidationNamesTheField) {
     EXPECT_EQ(ValidationMessage(s), "");  // the identity, row-major
     t.set_rotation(0, 2);                 // not orthonormal
     EXPECT_EQ(ValidationMessage(s).rfind("boolean.transform_b.rotation: ", 0), 0u) << ValidationMessage(s);
+    s.mutable_boolean()->clear_transform_b();
+    s.mutable_boolean()->set_blend_radius(-0.5);
+    EXPECT_EQ(ValidationMessage(s), "boolean.blend_radius: must be finite and at least 0, got -0.5");
+    s.mutable_boolean()->set_blend_radius(0.01);
+    s.mutable_boolean()->set_blend_iterations(20000);
+    EXPECT_EQ(ValidationMessage(s), "boolean.blend_iterations: must lie in 1..10000, got 10001");
+    s.mutable_boolean()->set_blend_iterations(0);  // = 200
+    EXPECT_EQ(ValidationMessage(s), "");
 }
 
 TEST(BooleanJob, TwoInputsOfOneCloudAreLoadedOnce) {

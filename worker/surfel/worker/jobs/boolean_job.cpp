@@ -24,6 +24,9 @@ BooleanOp ToBooleanOp(const v1::BooleanJob& job) { return BooleanOpFromProto(job
 BooleanOptions ToBooleanOptions(const v1::BooleanJob& job) {
     BooleanOptions o;
     if (job.has_transform_b()) o.transform = SimilarityFromProto(job.transform_b(), "boolean.transform_b");
+    o.blend_radius = job.blend_radius();
+    if (job.blend_iterations() != 0)
+        o.blend_iterations = static_cast<int>(std::min<std::uint32_t>(job.blend_iterations(), kMaxBlendIterations + 1));
     return o;
 }
 
@@ -62,6 +65,15 @@ nlohmann::json BooleanReportJson(const BooleanReport& r, std::size_t points) {
             {"normals_estimated_b", r.normals_estimated_b},
             {"overlap", r.overlap},
             {"notes", r.notes},
+            {"blend",
+             {{"radius", r.blend_radius},
+              {"moved", r.blend.moved},
+              {"fixed", r.blend.fixed},
+              {"creases_cleared", r.blend.creases_cleared},
+              {"knife_edges", r.blend.knife_edges},
+              {"iterations", r.blend.iterations},
+              {"max_displacement", r.blend.max_displacement},
+              {"mean_displacement", r.blend.mean_displacement}}},
             {"time_ms", r.time_ms}};
 }
 
