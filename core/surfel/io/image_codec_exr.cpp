@@ -15,13 +15,16 @@
 #include <OpenEXR/ImfIO.h>
 #include <OpenEXR/ImfOutputFile.h>
 #include <OpenEXR/ImfStringAttribute.h>
+#include <OpenEXR/ImfThreading.h>
 #include <OpenEXR/OpenEXRConfig.h>
 
+#include <algorithm>
 #include <cstdio>
 #include <cstring>
 #include <ctime>
 #include <exception>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include "surfel/io/image_codec.h"
@@ -97,6 +100,13 @@ int Encode(const char* format, const SurfelImageView* image, int storage, const 
         for (int c = 0; c < nc; ++c)
             fb.insert(image->channel_names[c],
                       Imf::Slice(type, base + std::size_t(c) * elem, elem * std::size_t(nc), elem * std::size_t(nc) * w));
+        // ZIP blocks compressed on every core, as OpenImageIO has OpenEXR do (its default thread
+        // count): the bytes do not depend on it. Once per process; the pool lives until exit.
+        static const bool threads = [] {
+            Imf::setGlobalThreadCount(static_cast<int>(std::max(1u, std::thread::hardware_concurrency())));
+            return true;
+        }();
+        (void)threads;
         MemoryStream stream;
         {
             Imf::OutputFile out(stream, header);  // the file is complete when `out` is destroyed
