@@ -35,6 +35,8 @@ surfel_require_pkgconfig(FLANN flann libflann-dev)
 set_property(TARGET PkgConfig::FLANN PROPERTY INTERFACE_LINK_LIBRARIES "${pkgcfg_lib_FLANN_lz4}")
 # OpenImageIO's CMake config points at /usr/include/opencv4 and breaks generation; use pkg-config.
 surfel_require_pkgconfig(OIIO OpenImageIO libopenimageio-dev)
+# OpenEXR alone, for the EXR plugin (the render's output without OpenImageIO's ~260 libraries).
+surfel_require_pkgconfig(OPENEXR OpenEXR libopenexr-dev)
 
 if(SURFEL_BUILD_TESTS)
     surfel_require_package(GTest libgtest-dev)

@@ -49,5 +49,7 @@ function(surfel_add_test name)
     # binary's name is each test's label: `ctest -L '^test_worker$'` runs one module's tests (the
     # TSan build selects its suites so).
     gtest_discover_tests(${name} DISCOVERY_TIMEOUT 60 PROPERTIES TIMEOUT 300 LABELS ${name}
-                         ENVIRONMENT "SURFEL_IMAGE_PLUGIN=${SURFEL_IMAGE_PLUGIN_PATH}")
+                         ENVIRONMENT "SURFEL_IMAGE_PLUGIN=${SURFEL_IMAGE_PLUGIN_PATH}"
+                         # (a second variable as its own property: gtest_discover_tests splits a list)
+                         ENVIRONMENT_MODIFICATION "SURFEL_EXR_PLUGIN=set:${SURFEL_EXR_PLUGIN_PATH}")
 endfunction()

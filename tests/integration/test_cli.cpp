@@ -128,11 +128,12 @@ protected:
 };
 fs::path Cli::dir_;
 
-/// Runs `[env] surfel args` with SURFEL_SERVER and SURFEL_IMAGE_PLUGIN unset (the image plugin is
-/// found beside the binary, as a user's is); returns the exit code and stdout + stderr.
+/// Runs `[env] surfel args` with SURFEL_SERVER, SURFEL_IMAGE_PLUGIN and SURFEL_EXR_PLUGIN unset (the
+/// image plugins are found beside the binary, as a user's are); returns the exit code and stdout +
+/// stderr.
 int RunSurfel(const std::string& args, std::string* output, const std::string& env = "",
               const std::string& binary = std::string(SURFEL_BIN_DIR) + "/surfel") {
-    const std::string command = "env -u SURFEL_SERVER -u SURFEL_IMAGE_PLUGIN " + env + " " + binary + " " + args + " 2>&1";
+    const std::string command = "env -u SURFEL_SERVER -u SURFEL_IMAGE_PLUGIN -u SURFEL_EXR_PLUGIN " + env + " " + binary + " " + args + " 2>&1";
     FILE* pipe = popen(command.c_str(), "r");
     char buf[4096];
     while (std::size_t n = std::fread(buf, 1, sizeof buf, pipe)) output->append(buf, n);
@@ -158,6 +159,7 @@ TEST_F(Cli, OnlyImageCommandsLoadTheImagePlugin) {
         std::string output;
         EXPECT_EQ(RunSurfel(args, &output, "LD_DEBUG=files"), 0) << args;
         EXPECT_EQ(output.find("surfel_image_oiio"), std::string::npos) << "surfel " << args << " opened the plugin";
+        EXPECT_EQ(output.find("surfel_image_exr"), std::string::npos) << "surfel " << args << " opened the EXR plugin";
         EXPECT_EQ(output.find("libOpenImageIO"), std::string::npos) << "surfel " << args << " loaded OpenImageIO";
     }
     std::string output;
@@ -165,18 +167,36 @@ TEST_F(Cli, OnlyImageCommandsLoadTheImagePlugin) {
                         "LD_DEBUG=files"),
               0);
     EXPECT_NE(output.find("surfel_image_oiio.so"), std::string::npos) << "the render must open the plugin";
+    // Issue 19.1: an EXR render opens only the EXR plugin (OpenEXR), not OpenImageIO.
+    output.clear();
+    EXPECT_EQ(RunSurfel("render " + sphere + " -o " + (dir_ / "l.exr").string() + " --width 8 --height 8", &output,
+                        "LD_DEBUG=files"),
+              0);
+    EXPECT_NE(output.find("surfel_image_exr.so"), std::string::npos) << "an EXR render must open the EXR plugin";
+    EXPECT_EQ(output.find("libOpenImageIO"), std::string::npos) << "an EXR render loaded OpenImageIO";
 }
 
 // A missing plugin: exit 1 before any work, the message naming every path searched.
 TEST_F(Cli, AMissingImagePluginIsAnErrorNamingThePathsSearched) {
     const std::string sphere = (dir_ / "sphere.ply").string();
     std::string output;
+    // EXR needs the EXR plugin or, failing that, the OpenImageIO one: neither can be loaded.
     EXPECT_EQ(RunSurfel("render " + sphere + " -o " + (dir_ / "m.exr").string(), &output,
-                        "SURFEL_IMAGE_PLUGIN=" + (dir_ / "nowhere" / "plugin.so").string()),
+                        "SURFEL_IMAGE_PLUGIN=" + (dir_ / "nowhere" / "plugin.so").string() +
+                            " SURFEL_EXR_PLUGIN=" + (dir_ / "nowhere" / "exr.so").string()),
               1);
     EXPECT_NE(output.find((dir_ / "nowhere" / "plugin.so").string()), std::string::npos) << output;
+    EXPECT_NE(output.find((dir_ / "nowhere" / "exr.so").string()), std::string::npos) << output;
     EXPECT_NE(output.find("SURFEL_IMAGE_PLUGIN"), std::string::npos) << output;
+    EXPECT_NE(output.find("SURFEL_EXR_PLUGIN"), std::string::npos) << output;
     EXPECT_FALSE(fs::exists(dir_ / "m.exr"));
+    // Without the EXR plugin, EXR goes through the OpenImageIO plugin.
+    output.clear();
+    EXPECT_EQ(RunSurfel("render " + sphere + " -o " + (dir_ / "m.exr").string() + " --width 8 --height 8", &output,
+                        "SURFEL_EXR_PLUGIN=" + (dir_ / "nowhere" / "exr.so").string()),
+              0)
+        << output;
+    EXPECT_TRUE(fs::exists(dir_ / "m.exr"));
 
     // The binary alone in a folder (a hard link keeps /proc/self/exe there; a copy if /tmp is
     // another file system): the plugin is looked for beside it, then in the installed layout.

@@ -18,6 +18,9 @@
 #ifndef SURFEL_IMAGE_PLUGIN_NAME
 #error "SURFEL_IMAGE_PLUGIN_NAME (the plugin's file name) is set by core/CMakeLists.txt"
 #endif
+#ifndef SURFEL_EXR_PLUGIN_NAME
+#error "SURFEL_EXR_PLUGIN_NAME (the EXR plugin's file name) is set by core/CMakeLists.txt"
+#endif
 #ifndef SURFEL_IMAGE_PLUGIN_INSTALL_RELDIR
 #error "SURFEL_IMAGE_PLUGIN_INSTALL_RELDIR (the installed plugin's folder, from bin/) is set by core/CMakeLists.txt"
 #endif
@@ -38,18 +41,34 @@ ImageFormat ImageFormatFromPath(const std::string& path) {
     throw Error(ErrorCode::kInvalidArgument, path + ": unknown image extension '" + ext + "' (expected .exr or .png)");
 }
 
-// ---- Finding and opening the plugin -----------------------------------------------------------
+// ---- Finding and opening the plugins ----------------------------------------------------------
+// Two plugins, each opened once per process on first use: surfel_image_oiio.so (OpenImageIO:
+// reads, PNG) and surfel_image_exr.so (OpenEXR alone: the EXR a render writes, the same bytes
+// for a fraction of the loading). Each is found by its own variable, then beside the executable,
+// then in the installed layout.
 
-std::vector<std::string> ImageCodecSearchPath() {
-    if (const char* explicit_path = std::getenv("SURFEL_IMAGE_PLUGIN"); explicit_path && *explicit_path)
-        return {explicit_path};
+namespace {
+
+struct PluginKind {
+    const char* file;  // the module's file name
+    const char* env;   // the variable that names it (only it, when set)
+};
+constexpr PluginKind kOiioPlugin{SURFEL_IMAGE_PLUGIN_NAME, "SURFEL_IMAGE_PLUGIN"};
+constexpr PluginKind kExrPlugin{SURFEL_EXR_PLUGIN_NAME, "SURFEL_EXR_PLUGIN"};
+
+std::vector<std::string> SearchPath(const PluginKind& kind) {
+    if (const char* explicit_path = std::getenv(kind.env); explicit_path && *explicit_path) return {explicit_path};
     std::error_code ec;
     const std::filesystem::path exe = std::filesystem::read_symlink("/proc/self/exe", ec);
     if (ec) return {};
     const std::filesystem::path dir = exe.parent_path();
-    return {(dir / SURFEL_IMAGE_PLUGIN_NAME).string(),
-            (dir / SURFEL_IMAGE_PLUGIN_INSTALL_RELDIR / SURFEL_IMAGE_PLUGIN_NAME).lexically_normal().string()};
+    return {(dir / kind.file).string(),
+            (dir / SURFEL_IMAGE_PLUGIN_INSTALL_RELDIR / kind.file).lexically_normal().string()};
 }
+
+}  // namespace
+
+std::vector<std::string> ImageCodecSearchPath() { return SearchPath(kOiioPlugin); }
 
 namespace {
 
@@ -59,8 +78,8 @@ struct LoadedCodec {
 };
 
 // Tries each candidate in order; the first that opens and has the right interface wins.
-LoadedCodec OpenCodec() {
-    const std::vector<std::string> candidates = ImageCodecSearchPath();
+LoadedCodec OpenCodec(const PluginKind& kind) {
+    const std::vector<std::string> candidates = SearchPath(kind);
     std::string tried;
     for (const std::string& path : candidates) {
         // RTLD_LAZY: of the ~260 libraries' function symbols only those called get bound (RTLD_NOW
@@ -88,20 +107,36 @@ LoadedCodec OpenCodec() {
         return {codec, std::string(codec->backend) + " (" + path + ")"};
     }
     if (candidates.empty()) tried = "\n  (cannot read /proc/self/exe to find the executable's folder)";
-    return {nullptr, "image support is not available: cannot load the image plugin " SURFEL_IMAGE_PLUGIN_NAME
-                     " (install it beside the executable or set SURFEL_IMAGE_PLUGIN to its path); tried:" +
-                         tried};
+    return {nullptr, std::string("cannot load the image plugin ") + kind.file +
+                         " (install it beside the executable or set " + kind.env + " to its path); tried:" + tried};
 }
 
 const LoadedCodec& Loaded() {
-    static const LoadedCodec loaded = OpenCodec();  // once per process, thread-safe
+    static const LoadedCodec loaded = OpenCodec(kOiioPlugin);  // once per process, thread-safe
+    return loaded;
+}
+
+const LoadedCodec& LoadedExr() {
+    static const LoadedCodec loaded = OpenCodec(kExrPlugin);
     return loaded;
 }
 
 const SurfelImageCodecV1& Codec() {
     const LoadedCodec& loaded = Loaded();
-    if (!loaded.codec) throw Error(ErrorCode::kFailedPrecondition, loaded.description);
+    if (!loaded.codec) throw Error(ErrorCode::kFailedPrecondition, "image support is not available: " + loaded.description);
     return *loaded.codec;
+}
+
+// The codec that writes EXR: the EXR plugin, else the OpenImageIO plugin (the same bytes);
+// `description` gets the one used.
+const SurfelImageCodecV1& ExrCodec(std::string* description = nullptr) {
+    const LoadedCodec& exr = LoadedExr();
+    const LoadedCodec& used = exr.codec ? exr : Loaded();
+    if (!used.codec)
+        throw Error(ErrorCode::kFailedPrecondition, "EXR output is not available: " + exr.description + "; and " +
+                                                        Loaded().description);
+    if (description) *description = used.description;
+    return *used.codec;
 }
 
 ErrorCode CodeOf(int status) {
@@ -131,11 +166,18 @@ std::string LoadImageCodec() {
     return Loaded().description;
 }
 
+std::string LoadImageCodec(ImageFormat format) {
+    if (format != ImageFormat::kExr) return LoadImageCodec();
+    std::string description;
+    ExrCodec(&description);
+    return description;
+}
+
 // ---- Encoding and decoding through the plugin -------------------------------------------------
 
 std::string EncodeImage(const Image& image, ImageFormat format, const ImageWriteOptions& options) {
     SURFEL_CHECK(image.pixels.size() == std::size_t(image.width) * image.height * image.channels.size());
-    const SurfelImageCodecV1& codec = Codec();
+    const SurfelImageCodecV1& codec = format == ImageFormat::kExr ? ExrCodec() : Codec();
     std::vector<const char*> names;
     SurfelImageView view{image.width, image.height, 0, nullptr, -1, -1, nullptr};
     int storage = kSurfelStorageFloat;

@@ -10,6 +10,13 @@
 /// (build/bin/ in a build tree); `<libdir>/surfel/` of an installed tree, found from the executable's
 /// folder (`<bindir>/../lib/surfel/` for the default GNU layout). When none opens,
 /// these functions throw Error(kFailedPrecondition) naming every path tried and why it failed.
+///
+/// Writing EXR (what a render writes) opens a smaller plugin first, `surfel_image_exr.so`
+/// (OpenEXR alone: five shared libraries, not ~260), found the same way with the variable
+/// SURFEL_EXR_PLUGIN; it writes the bytes the OpenImageIO plugin writes for the same image (the
+/// `capDate` header aside, the local time of the encode in both). Where it cannot be loaded, EXR
+/// goes through the OpenImageIO plugin; where neither can, Error(kFailedPrecondition) names the
+/// paths tried for both.
 
 #include <string>
 #include <vector>
@@ -55,7 +62,14 @@ Image ReadImage(const std::string& path);
 /// naming every path tried. Thread-safe; the outcome is decided once per process.
 std::string LoadImageCodec();
 
-/// Where the plugin is looked for, in order (see the file comment); empty when the executable's
+/// Opens what writing `format` needs, if not open yet: for kExr the EXR plugin (or, failing
+/// that, the OpenImageIO plugin), for kPng the OpenImageIO plugin (as LoadImageCodec()). Returns
+/// the backend and path of the plugin that will write it, e.g.
+/// "OpenEXR 3.1.5 (/opt/surfel/bin/surfel_image_exr.so)". Throws Error(kFailedPrecondition)
+/// naming every path tried. Thread-safe; each plugin's outcome is decided once per process.
+std::string LoadImageCodec(ImageFormat format);
+
+/// Where the OpenImageIO plugin is looked for, in order (see the file comment); empty when the executable's
 /// folder cannot be found (no /proc).
 std::vector<std::string> ImageCodecSearchPath();
 

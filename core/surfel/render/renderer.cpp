@@ -4,6 +4,7 @@
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
 
+#include <array>
 #include <atomic>
 #include <cmath>
 #include <deque>
@@ -117,6 +118,11 @@ struct SceneData {
     unsigned layer = 0;               // index into the layers (= Embree geometry id)
     const HitFilter* keep = nullptr;  // SurfaceLayer::keep; null or empty = every hit
     bool flip = false;                // SurfaceLayer::flip_normals
+    // Ball i as (centre x, y, z, radius rho_i), the values of cloud->positions[i] and
+    // surface->BallRadius(i) side by side: the ray-ball test of every candidate the traversal
+    // reports (BallInterval: 8 % of a render's CPU by perf) reads one 16-byte entry instead of two
+    // arrays, one of them behind a call into the surface.
+    std::vector<std::array<float, 4>> balls;
     // The first exception of a bounds callback (those run on Embree's build threads).
     std::mutex build_mutex;
     std::exception_ptr build_error;
@@ -162,8 +168,9 @@ void BoundsFn(const RTCBoundsFunctionArguments* args) {
 // Ray against ball i: [t0, t1] within [tnear, tfar], and the priority gamma = (rho - d) / rho.
 bool BallInterval(const SceneData& s, unsigned prim, const Vec3d& o, const Vec3d& d, double tnear, double tfar,
                   double* t0, double* t1, double* gamma) {
-    const Vec3d c = s.cloud->positions[prim].cast<double>();
-    const double rho = s.surface->BallRadius(prim);
+    const std::array<float, 4>& b = s.balls[prim];
+    const Vec3d c(b[0], b[1], b[2]);
+    const double rho = b[3];
     const double tc = (c - o).dot(d);
     const double d2 = (o + tc * d - c).squaredNorm();
     if (d2 > rho * rho) return false;
@@ -476,6 +483,11 @@ RenderResult RenderLayers(std::span<const SurfaceLayer> layers, const RenderOpti
         d.layer = static_cast<unsigned>(i);
         d.keep = &layers[i].keep;
         d.flip = layers[i].flip_normals;
+        d.balls.resize(d.cloud->size());
+        for (std::size_t j = 0; j < d.balls.size(); ++j) {
+            const Vec3f& p = d.cloud->positions[j];
+            d.balls[j] = {p.x(), p.y(), p.z(), d.surface->BallRadius(static_cast<std::uint32_t>(j))};
+        }
     }
     const EmbreeScene scene(&data);
     const double setup_ms = watch.ElapsedMs();

@@ -11,6 +11,7 @@
 #include "surfel/base/error.h"
 #include "surfel/base/validate.h"
 #include "surfel/spatial/uniform_grid.h"
+#include "surfel/surface/fit_kernels.h"
 #include "surfel/surface/local_analysis.h"
 
 namespace surfel {
@@ -49,6 +50,7 @@ struct AaSurface::Impl {
     // 0 empty, 1 being computed, 2 ready, 3 ready but undefined (no fit at that centre).
     std::unique_ptr<std::atomic<std::uint8_t>[]> center_state;
     std::uint64_t id = 0;  // this surface's key in the per-thread neighbour superset
+    const fit_kernels::Kernels* kernels = &fit_kernels::Best();  // the fits' weighted sums
     Impl(const PointCloud& c, const AaOptions& o) : cloud(c), opt(o) {}
 };
 
@@ -262,7 +264,8 @@ void FillSuperset(const UniformGrid& grid, std::uint64_t owner, const Vec3f& c, 
 // differences), relative to o: the first step of both FitAt (eq. 8, 9) and Evaluate (eq. 1-4).
 // From the thread's superset when it covers the ball (dense grids), else from the grid. `h`:
 // how far beyond the gather a new superset reaches (kSupersetMargin x h).
-void Gather(const UniformGrid& grid, std::uint64_t owner, const Vec3f& o, float radius, double h, NeighborBatch& nb) {
+void Gather(const UniformGrid& grid, std::uint64_t owner, const Vec3f& o, float radius, double h, NeighborBatch& nb,
+            const fit_kernels::Kernels& kernels) {
     nb.clear();
     if (grid.dense()) {
         Superset& s = tls_superset;
@@ -279,11 +282,7 @@ void Gather(const UniformGrid& grid, std::uint64_t owner, const Vec3f& o, float 
         const float ox = o.x(), oy = o.y(), oz = o.z();
         const float *SX = s.x.data(), *SY = s.y.data(), *SZ = s.z.data();
         float* SD = s.d2.data();
-#pragma omp simd
-        for (std::size_t j = 0; j < m; ++j) {
-            const float ex = SX[j] - ox, ey = SY[j] - oy, ez = SZ[j] - oz;
-            SD[j] = ex * ex + (ey * ey + ez * ez);
-        }
+        kernels.squared_distances(SX, SY, SZ, m, ox, oy, oz, SD);
         std::uint32_t* K = s.keep.data();
         std::size_t n = 0;
         for (std::size_t j = 0; j < m; ++j) {
@@ -320,9 +319,10 @@ template <typename Impl>
 WeightedMoments GatherWeighted(const Impl& im, const Vec3f& o, float cutoff, std::int64_t ball, NeighborBatch& nb) {
     const AaOptions& opt = im.opt;
     const float H = im.scale.empty() ? opt.h : ball >= 0 ? im.reach[std::size_t(ball)] : im.max_scale;
-    Gather(*im.grid, im.id, o, cutoff * H, H, nb);
+    Gather(*im.grid, im.id, o, cutoff * H, H, nb, *im.kernels);
     if (nb.size() < 3) return {};
-    if (im.scale.empty()) nb.Weights(opt.h);
+    // nb.Weights(opt.h), through the kernels.
+    if (im.scale.empty()) im.kernels->gauss_weights(nb.d2.data(), static_cast<float>(1.0 / (double(opt.h) * double(opt.h))), nb.w.data(), nb.size());
     else nb.WeightsPerPoint(im.inv_h2.data(), cutoff * cutoff);
     if (ball >= 0 && !im.weight_normals.empty()) {
         const Vec3f nr = im.weight_normals[std::size_t(ball)];
@@ -333,7 +333,9 @@ WeightedMoments GatherWeighted(const Impl& im, const Vec3f& o, float cutoff, std
             nb.w[j] *= std::exp(-c * c);
         }
     }
-    return WeightedMoments::Of(nb);
+    double m[10];
+    im.kernels->moments(nb.x.data(), nb.y.data(), nb.z.data(), nb.w.data(), nb.size(), m);
+    return {m[0], m[1], m[2], m[3], m[4], m[5], m[6], m[7], m[8], m[9]};
 }
 
 }  // namespace
@@ -357,7 +359,9 @@ bool AaSurface::FitAt(const Vec3d& r, Fit* fit, float cutoff, bool attributes, s
     // Step 2, polynomial: minimise sum (a_i(x_j, y_j) - f_j)^2 theta_j (eq. 10).
     nb.ToLocal(Vec3d::Zero(), fit->frame.u, fit->frame.v, fit->frame.n);
     PolyFit pf(o.degree, o.h);
-    pf.AddBatch(nb.lx.data(), nb.ly.data(), nb.lz.data(), nb.w.data(), m);
+    double sums[21];
+    impl_->kernels->poly_sums(nb.lx.data(), nb.ly.data(), nb.lz.data(), nb.w.data(), m, pf.inv_h(), sums);
+    pf.AddSums(sums);
     if (!pf.Solve(&fit->g)) return false;
     fit->valid = true;
     if (!attributes) return true;

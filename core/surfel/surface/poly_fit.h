@@ -286,6 +286,15 @@ public:
         b_[5] += b5;
         wsum_ += m0;
     }
+    /// Adds sums computed elsewhere, in AddBatch's order: the 15 moments s[0..14], then the 6
+    /// right-hand sides s[15..20] (surfel/surface/fit_kernels.h's PolySums, with ih = inv_h()).
+    void AddSums(const double* s) {
+        for (int k = 0; k < 15; ++k) mom_[k] += s[k];
+        for (int k = 0; k < 6; ++k) b_[k] += s[15 + k];
+        wsum_ += s[0];
+    }
+    /// 1 / h: the scale of the local coordinates in the sums.
+    double inv_h() const { return inv_h_; }
     double weight_sum() const { return wsum_; }
     /// Solves; falls back to lower degrees when the system is singular. False when even the
     /// constant fit has no weight.

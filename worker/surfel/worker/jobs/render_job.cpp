@@ -208,8 +208,9 @@ public:
         WithFieldPrefix("render", [&] { options.Validate(); });
         // A missing image plugin fails here, before the render's work. The first render of a
         // process opens it (dlopen, not cancellable: ~0.3 s of CPU); a job cancelled or past its
-        // deadline meanwhile stops right after, before the render's setup.
-        LoadImageCodec();
+        // deadline meanwhile stops right after, before the render's setup. EXR needs only the EXR
+        // plugin (OpenEXR: a few ms), PNG the OpenImageIO one.
+        LoadImageCodec(job.format() == v1::RenderJob::PNG ? ImageFormat::kPng : ImageFormat::kExr);
         if (progress && !progress(0.0)) throw Error(ErrorCode::kCancelled, "render: cancelled while loading the image plugin");
         RenderResult r;
         CsgRenderReport csg_report;

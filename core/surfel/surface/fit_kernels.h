@@ -1,0 +1,50 @@
+#pragma once
+/// \file
+/// The loops that dominate a surface fit: two weighted sums (about a quarter of a render's instructions:
+/// the covariance of the support plane, eq. 8-9, and the normal equations of the polynomial,
+/// eq. 10), the neighbours' squared distances and Gaussian weights, compiled twice: for the x86-64 baseline Debian builds for (SSE2: two doubles a
+/// vector) and for AVX2 (four), the one to run picked once from the CPU. Each build lives in its
+/// own translation unit (fit_kernels_base.cpp, fit_kernels_avx2.cpp) that includes nothing but
+/// <cstddef> and the loops of fit_kernels.inc, so no inline function of a shared header is ever
+/// compiled with AVX2 (two copies of one inline function under different flags are one symbol
+/// to the linker, which may keep either).
+///
+/// The elementwise loops give the same bits in both builds (no FMA, no contraction). The two
+/// builds of the sums add the same terms in a different order (2 against 4 partial sums per sum), so
+/// their results can differ in the last bits of a double; bench/README.md ("Render at the
+/// paper's framing") measures what that does to an image. Setting the environment variable
+/// SURFEL_FIT_KERNELS=baseline picks the baseline build on any CPU.
+
+#include <cstddef>
+
+namespace surfel::fit_kernels {
+
+/// out[0..9] = sum w, sum w x, sum w y, sum w z, sum w xx, w xy, w xz, w yy, w yz, w zz over n
+/// samples (float inputs, double sums).
+using MomentsFn = void (*)(const float* x, const float* y, const float* z, const float* w, std::size_t n,
+                           double* out);
+/// The 15 moments sum w xs^a ys^b (a + b <= 4, PolyFit's order) into out[0..14] and the 6 sums
+/// sum w z t_k (t = 1, xs, ys, xs^2, xs ys, ys^2) into out[15..20], with xs = x * ih, ys = y * ih.
+using PolySumsFn = void (*)(const double* x, const double* y, const double* z, const float* w, std::size_t n,
+                            double ih, double* out);
+
+/// out[j] = |(X, Y, Z)[j] - o|^2 in float, as x^2 + (y^2 + z^2) (Eigen's squaredNorm order).
+using SquaredDistancesFn = void (*)(const float* x, const float* y, const float* z, std::size_t n, float ox,
+                                    float oy, float oz, float* out);
+/// poly_fit.h's GaussWeights: w[i] = exp(-d2[i] * inv_h2) (elementwise: the same bits in both builds).
+using GaussWeightsFn = void (*)(const float* d2, float inv_h2, float* w, std::size_t n);
+
+struct Kernels {
+    MomentsFn moments;
+    PolySumsFn poly_sums;
+    SquaredDistancesFn squared_distances;
+    GaussWeightsFn gauss_weights;
+    const char* isa;  ///< "avx2" or "baseline"
+};
+
+/// The build for this CPU (decided once per process, thread-safe).
+const Kernels& Best();
+/// The baseline build (any x86-64).
+const Kernels& Baseline();
+
+}  // namespace surfel::fit_kernels
