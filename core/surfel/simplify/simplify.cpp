@@ -223,16 +223,21 @@ SimplifyResult Simplify(const PointCloud& input, const SimplifyOptions& options,
 
     std::vector<Vec3f> normals = input.normals;
     std::vector<float> variation;
+    KnnTable input_knn;  // iterative: the k = 16 neighbours of the normals also give its graph
     if ((needs_input_normals && normals.empty()) ||
         (options.method == SimplifyMethod::kParticle && options.adaptive)) {
         const KdTree tree(input.positions);
         NormalOptions no;
         no.k = std::min<int>(16, static_cast<int>(n) - 1);
         no.orient_k = std::min<int>(10, static_cast<int>(n) - 1);
-        // The particles need only tangent planes (unoriented normals, 2.3.3): their own normals are
-        // oriented after the run, over the m particles instead of the n input points.
-        no.orient = normals.empty() && options.method != SimplifyMethod::kParticle;
-        NormalResult nr = EstimateNormals(tree, no);
+        // Neither method needs oriented input normals: the particles only tangent planes (2.3.3),
+        // the quadrics of iterative contraction hold n n^T, d n and d^2, the same for -n. The
+        // output normals are oriented afterwards, over the m output points instead of the n
+        // input points.
+        no.orient = false;
+        if (options.method == SimplifyMethod::kIterative)
+            input_knn = tree.KnnAll(std::max(no.k, std::min<int>(options.neighbors, static_cast<int>(n) - 1)));
+        NormalResult nr = input_knn.k ? EstimateNormals(tree, input_knn, no) : EstimateNormals(tree, no);
         if (normals.empty()) {
             normals = std::move(nr.normals);
             report.normals_estimated = true;
@@ -256,7 +261,8 @@ SimplifyResult Simplify(const PointCloud& input, const SimplifyOptions& options,
             clusters = detail::VoxelClustering(input.positions, options, tracker);
             break;
         case SimplifyMethod::kIterative:
-            clusters = detail::IterativeSimplification(input.positions, normals, options, positions, tracker);
+            clusters = detail::IterativeSimplification(input.positions, normals, input_knn.k ? &input_knn : nullptr,
+                                                       report.normals_estimated, options, positions, tracker);
             break;
         case SimplifyMethod::kParticle: {
             // Particle simulation (2.3) by the resample module's engine.
@@ -275,7 +281,10 @@ SimplifyResult Simplify(const PointCloud& input, const SimplifyOptions& options,
         }
     }
     tracker.Check();
-    result.cloud = BuildFromClusters(input, normals, clusters, positions, options.positions_only);
+    // Estimated (unoriented) input normals reach the output through the clusters' own normals.
+    const bool unoriented = report.normals_estimated && options.method == SimplifyMethod::kIterative;
+    result.cloud = BuildFromClusters(input, unoriented ? std::span<const Vec3f>{} : std::span<const Vec3f>(normals),
+                                     clusters, positions, options.positions_only);
     if (!particle_normals.empty() && !options.positions_only) {
         result.cloud.normals = particle_normals;  // the MLS normals at the projected positions
         if (report.normals_estimated && result.cloud.size() >= 3) {  // input normals unoriented: orient these
