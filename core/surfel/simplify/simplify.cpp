@@ -1,5 +1,8 @@
 #include "surfel/simplify/simplify.h"
 
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+
 #include <algorithm>
 #include <cmath>
 #include <fstream>
@@ -98,7 +101,7 @@ void RepresentativesOnSurface(std::span<const Vec3f> points, const Clustering& c
 }
 
 PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> normals, const Clustering& clusters,
-                             std::span<const Vec3f> positions, bool positions_only) {
+                             std::span<const Vec3f> positions, bool positions_only, const KdTree* given_input_tree) {
     const std::size_t n = input.size(), m = clusters.count;
     SURFEL_CHECK(clusters.label.size() == n);
     SURFEL_CHECK(positions.empty() || positions.size() == m);
@@ -124,6 +127,7 @@ PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> nor
     // with none) and for normals that cancel out.
     std::unique_ptr<KdTree> input_tree;
     auto nearest_input = [&](const Vec3f& p) {
+        if (given_input_tree) return given_input_tree->Nearest(p).index;
         if (!input_tree) input_tree = std::make_unique<KdTree>(input.positions);
         return input_tree->Nearest(p).index;
     };
@@ -223,10 +227,12 @@ SimplifyResult Simplify(const PointCloud& input, const SimplifyOptions& options,
 
     std::vector<Vec3f> normals = input.normals;
     std::vector<float> variation;
+    std::unique_ptr<KdTree> input_tree;  // built for the input normals, kept for the attributes
     KnnTable input_knn;  // iterative: the k = 16 neighbours of the normals also give its graph
     if ((needs_input_normals && normals.empty()) ||
         (options.method == SimplifyMethod::kParticle && options.adaptive)) {
-        const KdTree tree(input.positions);
+        input_tree = std::make_unique<KdTree>(input.positions);
+        const KdTree& tree = *input_tree;
         NormalOptions no;
         no.k = std::min<int>(16, static_cast<int>(n) - 1);
         no.orient_k = std::min<int>(10, static_cast<int>(n) - 1);
@@ -275,7 +281,9 @@ SimplifyResult Simplify(const PointCloud& input, const SimplifyOptions& options,
             // Clusters for the attributes: each original point belongs to its closest particle.
             const KdTree ptree(positions);
             clusters.label.resize(n);
-            for (std::size_t i = 0; i < n; ++i) clusters.label[i] = ptree.Nearest(input.positions[i]).index;
+            tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 4096), [&](const tbb::blocked_range<std::size_t>& r) {
+                for (std::size_t i = r.begin(); i != r.end(); ++i) clusters.label[i] = ptree.Nearest(input.positions[i]).index;
+            });
             clusters.count = positions.size();
             break;
         }
@@ -284,7 +292,7 @@ SimplifyResult Simplify(const PointCloud& input, const SimplifyOptions& options,
     // Estimated (unoriented) input normals reach the output through the clusters' own normals.
     const bool unoriented = report.normals_estimated && options.method == SimplifyMethod::kIterative;
     result.cloud = BuildFromClusters(input, unoriented ? std::span<const Vec3f>{} : std::span<const Vec3f>(normals),
-                                     clusters, positions, options.positions_only);
+                                     clusters, positions, options.positions_only, input_tree.get());
     if (!particle_normals.empty() && !options.positions_only) {
         result.cloud.normals = particle_normals;  // the MLS normals at the projected positions
         if (report.normals_estimated && result.cloud.size() >= 3) {  // input normals unoriented: orient these

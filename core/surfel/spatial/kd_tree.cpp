@@ -6,6 +6,7 @@
 #include <tbb/parallel_invoke.h>
 
 #include <algorithm>
+#include <array>
 #include <limits>
 #include <map>
 #include <sstream>
@@ -76,42 +77,50 @@ struct KdTree::Impl {
         return c;
     }
 
-    // Builds the subtree of [begin, end) of `order` as node `id`; `sizes` gives each count's node count.
-    void BuildNode(std::uint32_t id, std::uint32_t begin, std::uint32_t end, const std::map<std::uint32_t, std::uint32_t>& sizes) {
+    // A point while building: its coordinates and input index side by side (the median search
+    // then walks contiguous memory).
+    struct Item {
+        float c[3];
+        std::uint32_t index;
+    };
+
+    // Builds the subtree of items [begin, end) as node `id`; `sizes` gives each count's node count.
+    // `lo`, `hi`: a box around the items (the root's bounding box, cut by the splits above: the
+    // widest side of that box picks the split dimension).
+    void BuildNode(std::vector<Item>& items, std::uint32_t id, std::uint32_t begin, std::uint32_t end,
+                   const std::map<std::uint32_t, std::uint32_t>& sizes, std::array<float, 3> lo, std::array<float, 3> hi) {
         Node& nd = nodes[id];
         if (end - begin <= kLeafSize) {
             nd = {3, 0.0f, begin, end};
             return;
         }
-        Vec3f lo = points[order[begin]], hi = lo;
-        for (std::uint32_t i = begin + 1; i < end; ++i) {
-            lo = lo.cwiseMin(points[order[i]]);
-            hi = hi.cwiseMax(points[order[i]]);
-        }
         int dim = 0;
-        const Vec3f ext = hi - lo;
-        if (ext.y() > ext[dim]) dim = 1;
-        if (ext.z() > ext[dim]) dim = 2;
+        if (hi[1] - lo[1] > hi[dim] - lo[dim]) dim = 1;
+        if (hi[2] - lo[2] > hi[dim] - lo[dim]) dim = 2;
         const std::uint32_t mid = begin + (end - begin) / 2;
         // The median by (coordinate, index): a total order, so the split does not depend on the
         // partial order std::nth_element leaves.
-        std::nth_element(order.begin() + begin, order.begin() + mid, order.begin() + end, [&](std::uint32_t a, std::uint32_t b) {
-            const float ca = points[a][dim], cb = points[b][dim];
-            return ca < cb || (ca == cb && a < b);
-        });
-        const float split = points[order[mid]][dim];
+        std::nth_element(items.begin() + begin, items.begin() + mid, items.begin() + end,
+                         [dim](const Item& x, const Item& y) {
+                             return x.c[dim] < y.c[dim] || (x.c[dim] == y.c[dim] && x.index < y.index);
+                         });
+        const float split = items[mid].c[dim];
         const std::uint32_t left_nodes = (mid - begin) <= kLeafSize ? 1 : sizes.at(mid - begin);
         const std::uint32_t right = id + 1 + left_nodes;
         nd = {static_cast<std::uint32_t>(dim), split, right, 0};
+        std::array<float, 3> left_hi = hi, right_lo = lo;
+        left_hi[dim] = split;
+        right_lo[dim] = split;
         if (end - begin >= kParallelBuild) {
-            tbb::parallel_invoke([&] { BuildNode(id + 1, begin, mid, sizes); }, [&] { BuildNode(right, mid, end, sizes); });
+            tbb::parallel_invoke([&] { BuildNode(items, id + 1, begin, mid, sizes, lo, left_hi); },
+                                 [&] { BuildNode(items, right, mid, end, sizes, right_lo, hi); });
         } else {
-            BuildNode(id + 1, begin, mid, sizes);
-            BuildNode(right, mid, end, sizes);
+            BuildNode(items, id + 1, begin, mid, sizes, lo, left_hi);
+            BuildNode(items, right, mid, end, sizes, right_lo, hi);
         }
     }
 
-// k nearest, kept sorted by insertion into a caller-owned buffer (ties by index: deterministic).
+        // k nearest, kept sorted by insertion into a caller-owned buffer (ties by index: deterministic).
     struct KnnVisit {
         const Impl* t;
         const Vec3f& q;
@@ -209,15 +218,24 @@ KdTree::KdTree(std::span<const Vec3f> points) : impl_(std::make_unique<Impl>()) 
     t.points.assign(points.begin(), points.end());
     const auto n = static_cast<std::uint32_t>(points.size());
     if (n == 0) return;
-    t.order.resize(n);
-    for (std::uint32_t i = 0; i < n; ++i) t.order[i] = i;
+    std::vector<Impl::Item> items(n);
+    for (std::uint32_t i = 0; i < n; ++i) items[i] = {{points[i].x(), points[i].y(), points[i].z()}, i};
     std::map<std::uint32_t, std::uint32_t> sizes;
     const std::uint32_t total = Impl::NodeCount(n, sizes);
     t.nodes.resize(total);
-    t.BuildNode(0, 0, n, sizes);
+    std::array<float, 3> lo = {items[0].c[0], items[0].c[1], items[0].c[2]}, hi = lo;
+    for (const Impl::Item& it : items)
+        for (int d = 0; d < 3; ++d) {
+            lo[d] = std::min(lo[d], it.c[d]);
+            hi[d] = std::max(hi[d], it.c[d]);
+        }
+    t.BuildNode(items, 0, 0, n, sizes, lo, hi);
+    t.order.resize(n);
     t.xyz.resize(3 * static_cast<std::size_t>(n));
-    for (std::uint32_t i = 0; i < n; ++i)
-        for (int a = 0; a < 3; ++a) t.xyz[3 * static_cast<std::size_t>(i) + a] = t.points[t.order[i]][a];
+    for (std::uint32_t i = 0; i < n; ++i) {
+        t.order[i] = items[i].index;
+        for (int a = 0; a < 3; ++a) t.xyz[3 * static_cast<std::size_t>(i) + a] = items[i].c[a];
+    }
 }
 
 KdTree::~KdTree() = default;
