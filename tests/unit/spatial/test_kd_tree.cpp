@@ -1,4 +1,5 @@
 #include <gtest/gtest.h>
+#include <tbb/global_control.h>
 
 #include <algorithm>
 #include <limits>
@@ -111,6 +112,30 @@ TEST(KdTree, TiesOnALatticeGoToTheLowerIndexLikeBruteForce) {
         want.erase(std::find_if(want.begin(), want.end(), [&](const Neighbor& nb) { return nb.index == i; }));
         for (int j = 0; j < 8; ++j) EXPECT_EQ(all.Row(i)[j], want[j].index) << "point " << i;
     }
+}
+
+// Above 32,768 points the tree's halves are built in parallel; node numbers and the points'
+// order in the leaves are fixed by the counts, so one thread and many build the same tree.
+TEST(KdTree, SameNeighboursWhateverTheThreadCount) {
+    ShapeOptions o;
+    o.points = 100000;
+    o.noise = 0.01;
+    const PointCloud c = SampleShape(Shape::kTorus, o);
+    KnnTable serial;
+    std::vector<Neighbor> radius_serial, radius_parallel;
+    {
+        const tbb::global_control one(tbb::global_control::max_allowed_parallelism, 1);
+        const KdTree tree(c.positions);
+        serial = tree.KnnAll(8);
+        tree.Radius(c.positions[0], 0.05f, &radius_serial);
+    }
+    const KdTree tree(c.positions);
+    const KnnTable parallel = tree.KnnAll(8);
+    tree.Radius(c.positions[0], 0.05f, &radius_parallel);
+    EXPECT_EQ(serial.indices, parallel.indices);
+    EXPECT_EQ(serial.dist2, parallel.dist2);
+    ASSERT_EQ(radius_serial.size(), radius_parallel.size());
+    for (std::size_t i = 0; i < radius_serial.size(); ++i) EXPECT_EQ(radius_serial[i].index, radius_parallel[i].index);
 }
 
 TEST(KdTree, FewerPointsThanK) {
