@@ -241,7 +241,7 @@ SimplifyResult Simplify(const PointCloud& input, const SimplifyOptions& options,
         // output normals are oriented afterwards, over the m output points instead of the n
         // input points.
         no.orient = false;
-        if (options.method == SimplifyMethod::kIterative)
+        if (options.method == SimplifyMethod::kIterative && n >= 3)  // fewer: EstimateNormals names the problem
             input_knn = tree.KnnAll(std::max(no.k, std::min<int>(options.neighbors, static_cast<int>(n) - 1)));
         NormalResult nr = input_knn.k ? EstimateNormals(tree, input_knn, no) : EstimateNormals(tree, no);
         if (normals.empty()) {
