@@ -1,5 +1,8 @@
 #include "surfel/simplify/simplify.h"
 
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+
 #include <algorithm>
 #include <cmath>
 #include <fstream>
@@ -98,7 +101,7 @@ void RepresentativesOnSurface(std::span<const Vec3f> points, const Clustering& c
 }
 
 PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> normals, const Clustering& clusters,
-                             std::span<const Vec3f> positions, bool positions_only) {
+                             std::span<const Vec3f> positions, bool positions_only, const KdTree* given_input_tree) {
     const std::size_t n = input.size(), m = clusters.count;
     SURFEL_CHECK(clusters.label.size() == n);
     SURFEL_CHECK(positions.empty() || positions.size() == m);
@@ -124,6 +127,7 @@ PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> nor
     // with none) and for normals that cancel out.
     std::unique_ptr<KdTree> input_tree;
     auto nearest_input = [&](const Vec3f& p) {
+        if (given_input_tree) return given_input_tree->Nearest(p).index;
         if (!input_tree) input_tree = std::make_unique<KdTree>(input.positions);
         return input_tree->Nearest(p).index;
     };
@@ -223,16 +227,23 @@ SimplifyResult Simplify(const PointCloud& input, const SimplifyOptions& options,
 
     std::vector<Vec3f> normals = input.normals;
     std::vector<float> variation;
+    std::unique_ptr<KdTree> input_tree;  // built for the input normals, kept for the attributes
+    KnnTable input_knn;  // iterative: the k = 16 neighbours of the normals also give its graph
     if ((needs_input_normals && normals.empty()) ||
         (options.method == SimplifyMethod::kParticle && options.adaptive)) {
-        const KdTree tree(input.positions);
+        input_tree = std::make_unique<KdTree>(input.positions);
+        const KdTree& tree = *input_tree;
         NormalOptions no;
         no.k = std::min<int>(16, static_cast<int>(n) - 1);
         no.orient_k = std::min<int>(10, static_cast<int>(n) - 1);
-        // The particles need only tangent planes (unoriented normals, 2.3.3): their own normals are
-        // oriented after the run, over the m particles instead of the n input points.
-        no.orient = normals.empty() && options.method != SimplifyMethod::kParticle;
-        NormalResult nr = EstimateNormals(tree, no);
+        // Neither method needs oriented input normals: the particles only tangent planes (2.3.3),
+        // the quadrics of iterative contraction hold n n^T, d n and d^2, the same for -n. The
+        // output normals are oriented afterwards, over the m output points instead of the n
+        // input points.
+        no.orient = false;
+        if (options.method == SimplifyMethod::kIterative && n >= 3)  // fewer: EstimateNormals names the problem
+            input_knn = tree.KnnAll(std::max(no.k, std::min<int>(options.neighbors, static_cast<int>(n) - 1)));
+        NormalResult nr = input_knn.k ? EstimateNormals(tree, input_knn, no) : EstimateNormals(tree, no);
         if (normals.empty()) {
             normals = std::move(nr.normals);
             report.normals_estimated = true;
@@ -256,7 +267,8 @@ SimplifyResult Simplify(const PointCloud& input, const SimplifyOptions& options,
             clusters = detail::VoxelClustering(input.positions, options, tracker);
             break;
         case SimplifyMethod::kIterative:
-            clusters = detail::IterativeSimplification(input.positions, normals, options, positions, tracker);
+            clusters = detail::IterativeSimplification(input.positions, normals, input_knn.k ? &input_knn : nullptr,
+                                                       report.normals_estimated, options, positions, tracker);
             break;
         case SimplifyMethod::kParticle: {
             // Particle simulation (2.3) by the resample module's engine.
@@ -269,13 +281,18 @@ SimplifyResult Simplify(const PointCloud& input, const SimplifyOptions& options,
             // Clusters for the attributes: each original point belongs to its closest particle.
             const KdTree ptree(positions);
             clusters.label.resize(n);
-            for (std::size_t i = 0; i < n; ++i) clusters.label[i] = ptree.Nearest(input.positions[i]).index;
+            tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 4096), [&](const tbb::blocked_range<std::size_t>& r) {
+                for (std::size_t i = r.begin(); i != r.end(); ++i) clusters.label[i] = ptree.Nearest(input.positions[i]).index;
+            });
             clusters.count = positions.size();
             break;
         }
     }
     tracker.Check();
-    result.cloud = BuildFromClusters(input, normals, clusters, positions, options.positions_only);
+    // Estimated (unoriented) input normals reach the output through the clusters' own normals.
+    const bool unoriented = report.normals_estimated && options.method == SimplifyMethod::kIterative;
+    result.cloud = BuildFromClusters(input, unoriented ? std::span<const Vec3f>{} : std::span<const Vec3f>(normals),
+                                     clusters, positions, options.positions_only, input_tree.get());
     if (!particle_normals.empty() && !options.positions_only) {
         result.cloud.normals = particle_normals;  // the MLS normals at the projected positions
         if (report.normals_estimated && result.cloud.size() >= 3) {  // input normals unoriented: orient these

@@ -18,6 +18,8 @@
 
 namespace surfel {
 
+class KdTree;
+
 enum class SimplifyMethod {
     kHierarchical,  ///< 2.1.2: binary splits at the centroid across the axis of largest variance.
     kIncremental,   ///< 2.1.1: region growing by nearest neighbours from seeds.
@@ -133,9 +135,11 @@ struct Clustering {
 /// least-squares quadratic height field (a centroid lies inside a bent surface); normals as the normalised sum of the members' oriented
 /// normals (`normals` may be empty: then estimated on the output and oriented); colours averaged;
 /// radius = the largest distance of a member from the representative, at least the distance to the nearest other representative, so splats leave no holes.
-/// `positions_only`: the representatives alone (no normals, radii or colours).
+/// `positions_only`: the representatives alone (no normals, radii or colours). `input_tree`: a
+/// kd-tree over input.positions when the caller has one (else one is built if needed).
 PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> normals, const Clustering& clusters,
-                             std::span<const Vec3f> positions = {}, bool positions_only = false);
+                             std::span<const Vec3f> positions = {}, bool positions_only = false,
+                             const KdTree* input_tree = nullptr);
 
 /// Current peak resident set size of this process in MiB (Linux VmHWM), 0 when unknown.
 double PeakResidentMiB();

@@ -10,6 +10,7 @@
 #include "surfel/base/progress.h"
 #include "surfel/resample/particle_engine.h"
 #include "surfel/simplify/simplify.h"
+#include "surfel/spatial/kd_tree.h"
 
 namespace surfel::detail {
 
@@ -69,9 +70,14 @@ Clustering IncrementalClustering(std::span<const Vec3f> points, const SimplifyOp
                                  ProgressTracker& progress);
 Clustering VoxelClustering(std::span<const Vec3f> points, const SimplifyOptions& options, ProgressTracker& progress);
 
-/// Iterative point-pair contraction: fills `positions` (one per cluster) and returns the clusters.
+/// Iterative point-pair contraction (notes 2.2): fills `positions` (one per cluster) and returns
+/// the clusters. `knn`: the points' nearest neighbours when the caller has them (rows nearest
+/// first, at least options.neighbors columns; the first options.neighbors make the graph), else
+/// null. `cluster_normals`: the normals are unoriented; give each cluster the sum of its members'
+/// normals turned to agree with its surviving point's (Clustering::normals) for BuildFromClusters
+/// to orient.
 Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<const Vec3f> normals,
-                                   const SimplifyOptions& options, std::vector<Vec3f>& positions,
-                                   ProgressTracker& progress);
+                                   const KnnTable* knn, bool cluster_normals, const SimplifyOptions& options,
+                                   std::vector<Vec3f>& positions, ProgressTracker& progress);
 
 }  // namespace surfel::detail

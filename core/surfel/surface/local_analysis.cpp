@@ -129,10 +129,20 @@ void NormalOptions::Validate() const {
 NormalResult EstimateNormals(const KdTree& tree, const NormalOptions& opt, const ProgressFn& progress) {
     opt.Validate();
     const std::size_t n = tree.size();
-    NormalResult res;
     if (n < 3) throw Error(ErrorCode::kInvalidArgument, "normal estimation needs at least 3 points, got " + std::to_string(n));
     const int k = std::min<int>(opt.k, static_cast<int>(n) - 1);
     const KnnTable knn = tree.KnnAll(k, progress ? ProgressFn([&](double f) { return progress(0.4 * f); }) : ProgressFn{});
+    return EstimateNormals(tree, knn, opt, progress);
+}
+
+NormalResult EstimateNormals(const KdTree& tree, const KnnTable& knn, const NormalOptions& opt,
+                             const ProgressFn& progress) {
+    opt.Validate();
+    const std::size_t n = tree.size();
+    NormalResult res;
+    if (n < 3) throw Error(ErrorCode::kInvalidArgument, "normal estimation needs at least 3 points, got " + std::to_string(n));
+    SURFEL_CHECK(knn.size() == n && knn.k > 0, knn.size() << " rows of " << knn.k << " neighbours for " << n << " points");
+    const int k = std::min({opt.k, static_cast<int>(n) - 1, knn.k});
     res.normals.resize(n);
     res.surface_variation.resize(n);
     const auto pts = tree.points();
@@ -143,7 +153,7 @@ NormalResult EstimateNormals(const KdTree& tree, const NormalOptions& opt, const
         std::vector<float> w(k + 1);
         for (std::size_t i = r.begin(); i != r.end(); ++i) {
             idx[0] = static_cast<std::uint32_t>(i);
-            std::copy(knn.Row(i).begin(), knn.Row(i).end(), idx.begin() + 1);
+            std::copy_n(knn.Row(i).begin(), k, idx.begin() + 1);
             std::span<const float> weights;
             if (opt.weighted) {
                 const float kth = std::sqrt(knn.Dist2(i)[k - 1]);

@@ -105,6 +105,11 @@ struct NormalResult {
 /// default, orients them consistently. Parallel; the result does not depend on the thread count.
 /// Calls options.Validate() first; needs at least 3 points.
 NormalResult EstimateNormals(const KdTree& tree, const NormalOptions& options = {}, const ProgressFn& progress = {});
+/// The same over neighbours the caller already has: `knn` = tree.KnnAll(K) for some K (rows
+/// nearest first); its first min(options.k, K) columns are the covariance neighbourhoods, the
+/// same result as EstimateNormals(tree, options) when K >= options.k.
+NormalResult EstimateNormals(const KdTree& tree, const KnnTable& knn, const NormalOptions& options,
+                             const ProgressFn& progress = {});
 
 /// Consistent orientation (notes 1.2, after Hoppe et al. 1992), outward on closed surfaces.
 ///

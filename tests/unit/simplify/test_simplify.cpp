@@ -7,6 +7,8 @@
 #include "surfel/base/shapes.h"
 #include "surfel/simplify/simplify.h"
 #include "surfel/spatial/kd_tree.h"
+#include "surfel/surface/local_analysis.h"
+#include "iterative_reference.h"
 
 namespace surfel {
 namespace {
@@ -234,6 +236,44 @@ TEST(Simplify, HierarchicalErrorBoundKeepsClustersFlat) {
         for (const Vec3f& p : r.cloud.positions) EXPECT_NEAR(p.norm(), 1.0, bound * 1.5);
     }
     EXPECT_LT(last, 20000u);
+}
+
+// The flat pool and indexed heap contract the same pairs in the same order as the first
+// version's lazy queue of all pairs (tests/unit/simplify/iterative_reference.h): the same points,
+// to the bit, with given normals (its own 6-NN graph) and with estimated ones (the graph from the
+// normals' 16 neighbours, normals unoriented).
+TEST(Simplify, IterativeContractsLikeTheReferenceQueue) {
+    for (const Shape shape : {Shape::kTorus, Shape::kBox}) {
+        ShapeOptions so;
+        so.points = 4000;
+        so.noise = 0.004;
+        so.normals = true;
+        const PointCloud with_normals = SampleShape(shape, so);
+        PointCloud bare = with_normals;
+        bare.normals.clear();
+        NormalOptions no;
+        no.orient = false;
+        const std::vector<Vec3f> estimated = EstimateNormals(KdTree(bare.positions), no).normals;
+        for (const std::size_t target : {40u, 400u, 2000u}) {
+            SCOPED_TRACE(std::string(ShapeName(shape)) + " target " + std::to_string(target));
+            const std::vector<Vec3f> ref_given =
+                reference::IterativeSimplify(with_normals.positions, with_normals.normals, target, 6, 1e-3);
+            const std::vector<Vec3f> ref_estimated =
+                reference::IterativeSimplify(bare.positions, estimated, target, 6, 1e-3);
+            const PointCloud given = RunSimplify(with_normals, SimplifyMethod::kIterative, target).cloud;
+            const PointCloud est = RunSimplify(bare, SimplifyMethod::kIterative, target).cloud;
+            ASSERT_EQ(ref_given.size(), target);
+            ASSERT_EQ(given.size(), target);
+            ASSERT_EQ(est.size(), target);
+            std::size_t same_given = 0, same_est = 0;
+            for (std::size_t i = 0; i < target; ++i) {
+                same_given += given.positions[i] == ref_given[i];
+                same_est += est.positions[i] == ref_estimated[i];
+            }
+            EXPECT_EQ(same_given, target);
+            EXPECT_EQ(same_est, target);
+        }
+    }
 }
 
 TEST(Simplify, IterativeErrorBound) {
