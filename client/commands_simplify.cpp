@@ -14,11 +14,7 @@ struct SimplifyArgs {
     std::string input, output, method = SimplifyMethodName(defaults.method);
     std::uint64_t target = 0, seed = defaults.seed, max_size = defaults.max_cluster_size;
     double error = 0, max_variation = defaults.max_variation;
-    // The quality report is opt-in on the command line (--error-report): measuring it takes
-    // longer than hierarchical clustering itself on a 362k-point scan (two MLS projections of
-    // 20,000 samples and two kd-trees, about 1 s). Jobs through the API keep SimplifyOptions'
-    // default (measured unless no_error_report).
-    bool adaptive = defaults.adaptive, error_report = false, no_error = false, ascii = false;
+    bool adaptive = defaults.adaptive, no_error = !defaults.measure_error, ascii = false;
     CommonFlags flags;
     JobFlags job;
 };
@@ -41,7 +37,7 @@ void RunSimplify(SimplifyArgs& a) {
     s.set_max_variation(a.max_variation);
     s.set_max_cluster_size(a.max_size);
     s.set_ascii(a.ascii);
-    s.set_no_error_report(a.no_error || !a.error_report);
+    s.set_no_error_report(a.no_error);
     nlohmann::json report = ExecuteJob(spec, {a.input}, a.output, a.flags, a.job);
     if (xyz && report.contains("output")) WritePointCloud(ReadPointCloud(a.output), a.output);
     PrintReport(report, a.flags);
@@ -70,19 +66,17 @@ void RegisterSimplifyCommands(CLI::App& app) {
         ->capture_default_str()
         ->check(CLI::Range(std::uint64_t{1}, std::uint64_t{kMaxMaxClusterSize}));
     sub->add_option("--seed", a->seed, "Seed (incremental seeds, particle spreading)")->capture_default_str();
-    sub->add_flag("--error-report", a->error_report,
-                  "Measure the quality report (surface error Delta_max, Delta_avg; about 1 s on 362k points)");
-    sub->add_flag("--no-error", a->no_error, "Skip the quality report (the default; overrides --error-report)");
+    sub->add_flag("--no-error", a->no_error, "Skip the quality report (surface error)");
     sub->add_flag("--ascii", a->ascii, "Write ASCII PLY");
     AddCommonFlags(sub, &a->flags);
     AddJobFlags(sub, &a->job);
     sub->footer(
         "Runs in-process, or on a server with --server host:port. Every method hits --target\n"
-        "exactly. With --error-report the report gives the surface error of the input against\n"
-        "the result (Delta_max, Delta_avg; absolute and relative to the bounding-box diagonal).\n"
+        "exactly. The report gives the surface error of the input against the result\n"
+        "(Delta_max, Delta_avg; absolute and relative to the bounding-box diagonal).\n"
         "Examples:\n"
         "  surfel simplify bunny.ply -o bunny_1k.ply --method hierarchical --target 1000\n"
-        "  surfel simplify scan.ply -o scan_s.ply --method iterative --error 0.0005 --json --error-report\n"
+        "  surfel simplify scan.ply -o scan_s.ply --method iterative --error 0.0005 --json\n"
         "  surfel simplify scan.ply -o scan_p.ply --method particle --target 5000 --adaptive");
     sub->callback([a] { RunSimplify(*a); });
 }

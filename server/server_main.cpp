@@ -47,17 +47,30 @@ std::string DefaultWebRoot() {
 // OpenImageIO). Say at start where it is, or that render jobs will fail without it.
 void LogImagePlugin() {
     namespace fs = std::filesystem;
-    std::string tried;
-    for (const std::string& path : surfel::ImageCodecSearchPath()) {
-        std::error_code ec;
-        if (fs::is_regular_file(path, ec)) {
-            spdlog::info("image plugin: {} (opened by the first render job)", path);
-            return;
+    const auto find = [](const std::vector<std::string>& paths, std::string& tried) -> std::string {
+        for (const std::string& path : paths) {
+            std::error_code ec;
+            if (fs::is_regular_file(path, ec)) return path;
+            tried += (tried.empty() ? "" : ", ") + path;
         }
-        tried += (tried.empty() ? "" : ", ") + path;
+        return {};
+    };
+    std::string tried_oiio, tried_exr;
+    const std::string oiio = find(surfel::ImageCodecSearchPath(), tried_oiio);
+    const std::string exr = find(surfel::ExrCodecSearchPath(), tried_exr);
+    if (!exr.empty()) spdlog::info("EXR plugin: {} (opened by the first EXR render job)", exr);
+    if (!oiio.empty()) {
+        spdlog::info("image plugin: {} (opened by the first PNG render job{})", oiio,
+                     exr.empty() ? ", and EXR ones: no EXR plugin" : "");
+        return;
     }
-    spdlog::warn("no image plugin found (tried: {}): render jobs will fail with FAILED_PRECONDITION",
-                 tried.empty() ? "nothing: /proc/self/exe unreadable" : tried);
+    if (!exr.empty()) {
+        spdlog::warn("no OpenImageIO plugin found (tried: {}): PNG output will fail with FAILED_PRECONDITION",
+                     tried_oiio.empty() ? "nothing: /proc/self/exe unreadable" : tried_oiio);
+        return;
+    }
+    spdlog::warn("no image plugin found (tried: {}; {}): render jobs will fail with FAILED_PRECONDITION",
+                 tried_exr.empty() ? "nothing: /proc/self/exe unreadable" : tried_exr, tried_oiio);
 }
 
 // Writes `port` to `path` atomically (a reader never sees a partial file).

@@ -69,6 +69,7 @@ std::vector<std::string> SearchPath(const PluginKind& kind) {
 }  // namespace
 
 std::vector<std::string> ImageCodecSearchPath() { return SearchPath(kOiioPlugin); }
+std::vector<std::string> ExrCodecSearchPath() { return SearchPath(kExrPlugin); }
 
 namespace {
 

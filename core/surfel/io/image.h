@@ -73,4 +73,7 @@ std::string LoadImageCodec(ImageFormat format);
 /// folder cannot be found (no /proc).
 std::vector<std::string> ImageCodecSearchPath();
 
+/// Where the EXR plugin (OpenEXR alone) is looked for, in order; empty as above.
+std::vector<std::string> ExrCodecSearchPath();
+
 }  // namespace surfel

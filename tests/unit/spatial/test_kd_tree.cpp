@@ -80,42 +80,7 @@ TEST_F(KdTreeTest, KnnAllExcludesSelfAndIsDeterministic) {
     }
 }
 
-// A lattice: every query has many neighbours at exactly the same distance. The tree's answer is
-// the brute force's to the index (ties by index), for k-NN, the nearest point and KnnAll, and the
-// same whatever the order the points came in.
-TEST(KdTree, TiesOnALatticeGoToTheLowerIndexLikeBruteForce) {
-    std::vector<Vec3f> pts;
-    for (int x = 0; x < 12; ++x)
-        for (int y = 0; y < 10; ++y)
-            for (int z = 0; z < 3; ++z) pts.emplace_back(0.5f * x, 0.5f * y, 0.5f * z);
-    std::mt19937 rng(7);
-    std::shuffle(pts.begin(), pts.end(), rng);
-    pts.push_back(pts[17]);  // a duplicate
-    const KdTree tree(pts);
-    std::vector<Neighbor> got;
-    for (std::size_t i = 0; i < pts.size(); i += 7) {
-        const Vec3f q = pts[i] + Vec3f(0.25f, 0.0f, 0.0f);  // halfway between two lattice points
-        for (const int k : {1, 6, 26}) {
-            tree.Knn(q, k, &got);
-            const auto want = BruteKnn(pts, q, k);
-            ASSERT_EQ(got.size(), want.size());
-            for (std::size_t j = 0; j < want.size(); ++j) {
-                EXPECT_EQ(got[j].index, want[j].index) << "query " << i << " k " << k << " rank " << j;
-                EXPECT_EQ(got[j].dist2, want[j].dist2);
-            }
-        }
-        EXPECT_EQ(tree.Nearest(q).index, BruteKnn(pts, q, 1)[0].index);
-    }
-    const KnnTable all = tree.KnnAll(8);
-    for (std::size_t i = 0; i < pts.size(); ++i) {
-        auto want = BruteKnn(pts, pts[i], 9);
-        want.erase(std::find_if(want.begin(), want.end(), [&](const Neighbor& nb) { return nb.index == i; }));
-        for (int j = 0; j < 8; ++j) EXPECT_EQ(all.Row(i)[j], want[j].index) << "point " << i;
-    }
-}
-
-// Above 32,768 points the tree's halves are built in parallel; node numbers and the points'
-// order in the leaves are fixed by the counts, so one thread and many build the same tree.
+// The same neighbours whatever the thread count (KnnAll's queries run in parallel).
 TEST(KdTree, SameNeighboursWhateverTheThreadCount) {
     ShapeOptions o;
     o.points = 100000;
