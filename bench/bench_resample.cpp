@@ -4,6 +4,11 @@
 // object (time, count reached, distance to the mesh, coverage, nearest-neighbour CV, peak RSS);
 // bench/bench_resample.py runs the sides in interleaved processes and writes the table. PCL's
 // MLS upsampling is bench_resample_pcl. The CGAL sides are compiled only when CGAL is installed.
+// For measuring the particle engine's variants, side `ours` reads ResampleOptions from the
+// environment: SURFEL_BENCH_ITERATIONS (iterations), SURFEL_BENCH_TOLERANCE (relax_tolerance),
+// SURFEL_BENCH_SPREAD=disk|jitter (spread_disk), SURFEL_BENCH_CACHED=0|1 (cached_fits).
+#include <cstdlib>
+
 #include "bench_resample_common.h"
 #include "surfel/resample/resample.h"
 #include "surfel/surface/local_analysis.h"
@@ -26,10 +31,15 @@ nlohmann::json Ours(const ResampleCase& c) {
     ResampleOptions o;
     o.target = c.target();
     o.measure_error = false;
+    if (const char* v = std::getenv("SURFEL_BENCH_ITERATIONS")) o.iterations = std::atoi(v);
+    if (const char* v = std::getenv("SURFEL_BENCH_TOLERANCE")) o.relax_tolerance = std::atof(v);
+    if (const char* v = std::getenv("SURFEL_BENCH_CACHED")) o.cached_fits = std::atoi(v) != 0;
+    if (const char* v = std::getenv("SURFEL_BENCH_SPREAD")) o.spread_disk = std::string(v) == "disk";
     const auto t0 = Clock::now();
     const ResampleResult r = Resample(input, o);
     const auto t1 = Clock::now();
     j["time_ms"] = Ms(t0, t1);
+    j["iterations"] = r.report.iterations;
     j["stages"] = {{"resample", Ms(t0, t1)}};
     j["peak_rss_mb"] = PeakResidentMiB();
     MeasureResample(c, r.cloud.positions, j);

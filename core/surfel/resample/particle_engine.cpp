@@ -19,6 +19,13 @@
 #include "surfel/surface/mls.h"
 
 namespace surfel {
+namespace {
+// Neighbours per input point in the graph WalkNearest follows.
+constexpr int kWalkNeighbors = 8;
+// Verlet lists (Allen & Tildesley): each particle's neighbours within its radius plus a skin of
+// kSkin r0, rebuilt only when some particle may have come within its radius of one not listed.
+constexpr double kSkin = 0.5;
+}  // namespace
 
 ParticleEngine::ParticleEngine(const PointCloud& input, std::span<const Vec3f> normals,
                                std::span<const float> variation, bool adaptive)
@@ -49,12 +56,15 @@ ParticleEngine::ParticleEngine(const PointCloud& input, std::span<const Vec3f> n
     median_radius_ = sorted_radius[n / 2];
     const double max_area = 4.0 * std::numbers::pi * double(median_radius_) * median_radius_ / 6.0;
     weight_.resize(n);
+    area_.resize(n);
     total_ = 0.0;
     for (std::size_t i = 0; i < n; ++i) {
         const double area = std::min(max_area, 1.0 / std::max(1e-30, static_cast<double>(density.density[i])));
+        area_[i] = area;
         weight_[i] = area / (scale_[i] * scale_[i]);  // expected particles ~ area / r^2
         total_ += weight_[i];
     }
+    graph_ = tree_->KnnAll(std::min<int>(kWalkNeighbors, static_cast<int>(n) - 1));
 }
 
 ParticleEngine::~ParticleEngine() = default;
@@ -68,6 +78,33 @@ Vec3f ParticleEngine::OntoSurface(Vec3f moved) const {
     // goes on where the samples stop, and particles pushed outward would drift along it. Keep
     // them within the 6-neighbour radius of the closest original point.
     const Vec3f off = moved - points[q];
+    const float reach = std::min(reach_radius_[q], 2.0f * median_radius_), len_off = off.norm();
+    if (len_off > reach) moved = points[q] + off * (reach / len_off);
+    return moved;
+}
+
+std::uint32_t ParticleEngine::WalkNearest(const Vec3f& x, std::uint32_t start) const {
+    const std::span<const Vec3f> points = input_.positions;
+    std::uint32_t cur = start;
+    float best = (points[cur] - x).squaredNorm();
+    for (;;) {
+        std::uint32_t next = cur;
+        for (const std::uint32_t j : graph_.Row(cur)) {
+            if (j == UINT32_MAX) continue;
+            const float d2 = (points[j] - x).squaredNorm();
+            if (d2 < best || (d2 == best && j < next)) best = d2, next = j;
+        }
+        if (next == cur) return cur;
+        cur = next;
+    }
+}
+
+Vec3f ParticleEngine::OntoSurface(Vec3f moved, std::uint32_t& home) const {
+    const std::span<const Vec3f> points = input_.positions;
+    const std::uint32_t q = home = WalkNearest(moved, home);
+    const Vec3f& nq = normals_[q];
+    moved -= (moved - points[q]).dot(nq) * nq;
+    const Vec3f off = moved - points[q];  // within reach, as OntoSurface(moved)
     const float reach = std::min(reach_radius_[q], 2.0f * median_radius_), len_off = off.norm();
     if (len_off > reach) moved = points[q] + off * (reach / len_off);
     return moved;
@@ -98,21 +135,24 @@ void ParticleEngine::Relax(std::vector<Vec3f>& positions, double radius, int ite
 }
 
 void ParticleEngine::Run(const ParticleParams& params, std::vector<Vec3f>& positions,
-                         std::vector<Vec3f>& out_normals, ProgressTracker& progress) const {
+                         std::vector<Vec3f>& out_normals, ProgressTracker& progress, ParticleStats* stats) const {
     const std::span<const Vec3f> points = input_.positions;
     const std::span<const Vec3f> normals = normals_;
     const KdTree& tree = *tree_;
     const std::size_t n = points.size();
     const std::size_t m = params.count;
     SURFEL_CHECK(m >= 1);
+    ParticleStats local_stats;
+    ParticleStats& st = stats ? *stats : local_stats;
+    st = ParticleStats{};
     // Uniform repulsion radius for this many particles: a bit above the hexagonal spacing of
     // total / m area per particle, so that neighbours push until the spacing is even.
     const double particles = static_cast<double>(params.fixed_input ? m + n : m);
     const double r0 = 2.0 * std::sqrt(total_ / (std::numbers::pi * particles));
     progress.Advance(0.05);
 
-    // Spread: systematic sampling over the cumulative weights (seeded offset), plus a small
-    // seeded tangential jitter so that particles on the same original point separate.
+    // Spread (2.3.1): systematic sampling over the cumulative weights (seeded offset) gives each
+    // original point its share of particles, in particle order.
     detail::Random rng(params.seed);
     positions.resize(m);
     std::vector<std::uint32_t> home(m);
@@ -125,65 +165,225 @@ void ParticleEngine::Run(const ParticleParams& params, std::vector<Vec3f>& posit
             home[p] = static_cast<std::uint32_t>(i);
             next += step;
         }
-        for (std::size_t p = 0; p < m; ++p) {
-            const Vec3f& nn = normals[home[p]];
-            Vec3f t = nn.unitOrthogonal();
-            const Vec3f b = nn.cross(t);
-            const double angle = 2.0 * std::numbers::pi * rng.Uniform(), len = 0.25 * r0 * rng.Uniform();
-            positions[p] = points[home[p]] + static_cast<float>(len * std::cos(angle)) * t +
-                           static_cast<float>(len * std::sin(angle)) * b;
+        if (params.spread == ParticleParams::Spread::kJitter) {
+            // A small seeded tangential jitter, so that particles on the same point separate.
+            for (std::size_t p = 0; p < m; ++p) {
+                const Vec3f& nn = normals[home[p]];
+                Vec3f t = nn.unitOrthogonal();
+                const Vec3f b = nn.cross(t);
+                const double angle = 2.0 * std::numbers::pi * rng.Uniform(), len = 0.25 * r0 * rng.Uniform();
+                positions[p] = points[home[p]] + static_cast<float>(len * std::cos(angle)) * t +
+                               static_cast<float>(len * std::sin(angle)) * b;
+            }
+        } else {
+            // The c particles of a sample split its tangent disk of area 1 / rho (radius R) on a
+            // Vogel spiral, R sqrt((j + 1/2) / c) at angles j x the golden angle from a seeded
+            // phase: about equal areas per particle, no two on the same spot.
+            constexpr double kGolden = 2.399963229728653;  // pi (3 - sqrt 5)
+            for (std::size_t p = 0; p < m;) {
+                std::size_t e = p;
+                while (e < m && home[e] == home[p]) ++e;
+                const std::uint32_t s = home[p];
+                const double c = static_cast<double>(e - p), R = std::sqrt(area_[s] / std::numbers::pi);
+                const Vec3f& nn = normals[s];
+                const Vec3f t = nn.unitOrthogonal(), b = nn.cross(t);
+                const double phase = 2.0 * std::numbers::pi * rng.Uniform();
+                for (std::size_t j = 0; j < e - p; ++j) {
+                    const double len = R * std::sqrt((static_cast<double>(j) + 0.5) / c);
+                    const double angle = phase + kGolden * static_cast<double>(j);
+                    positions[p + j] = points[s] + static_cast<float>(len * std::cos(angle)) * t +
+                                       static_cast<float>(len * std::sin(angle)) * b;
+                }
+                p = e;
+            }
         }
+        tbb::parallel_for(tbb::blocked_range<std::size_t>(0, m, 1024), [&](const auto& range) {
+            for (std::size_t p = range.begin(); p != range.end(); ++p) home[p] = WalkNearest(positions[p], home[p]);
+        });
     }
 
     std::vector<Vec3f> next(m);
-    std::vector<float> radius(m);
-    // With fixed input samples, the grid holds the particles followed by the samples.
+    std::vector<float> radius(m), list_radius(m);
+    std::vector<float> moved(m, 0.0f);  // distance from the position at the last list build
+    std::vector<Vec3f> built(m);        // positions at the last list build
+    // Verlet lists in CSR form: neighbours of particle p are nbr[first[p] .. first[p + 1]); with
+    // fixed input samples, index m + i is sample i.
+    std::vector<std::uint32_t> first(m + 1), nbr;
     std::vector<Vec3f> all;
     if (params.fixed_input) all.resize(m + n);
-    const double max_scale = *std::max_element(scale_.begin(), scale_.end());
-    for (int iter = 0; iter < params.iterations; ++iter) {
-        // Radius of each particle from its closest original point.
-        tbb::parallel_for(tbb::blocked_range<std::size_t>(0, m, 1024), [&](const auto& range) {
-            for (std::size_t p = range.begin(); p != range.end(); ++p) {
-                home[p] = tree.Nearest(positions[p]).index;
-                radius[p] = static_cast<float>(r0 * scale_[home[p]]);
-            }
-        });
+    for (std::size_t p = 0; p < m; ++p) radius[p] = static_cast<float>(r0 * scale_[home[p]]);
+    const float skin = static_cast<float>(kSkin * r0);
+    const auto build_lists = [&] {
+        ++st.neighbor_rebuilds;
+        float max_list = 0.0f;
+        for (std::size_t p = 0; p < m; ++p) {
+            list_radius[p] = radius[p] + skin;
+            max_list = std::max(max_list, list_radius[p]);
+        }
         if (params.fixed_input) {
             std::copy(positions.begin(), positions.end(), all.begin());
             std::copy(points.begin(), points.end(), all.begin() + static_cast<std::ptrdiff_t>(m));
         }
-        const UniformGrid grid(params.fixed_input ? std::span<const Vec3f>(all) : std::span<const Vec3f>(positions),
-                               static_cast<float>(r0 * max_scale));
+        const std::span<const Vec3f> pts = params.fixed_input ? std::span<const Vec3f>(all) : std::span<const Vec3f>(positions);
+        const UniformGrid grid(pts, max_list);
+        std::vector<std::uint32_t> count(m);
+        tbb::parallel_for(tbb::blocked_range<std::size_t>(0, m, 512), [&](const auto& range) {
+            for (std::size_t p = range.begin(); p != range.end(); ++p) {
+                std::uint32_t c = 0;
+                grid.ForEachWithin(positions[p], list_radius[p], [&](std::uint32_t j, const Vec3f&, float) { c += j != p; });
+                count[p] = c;
+            }
+        });
+        first[0] = 0;
+        for (std::size_t p = 0; p < m; ++p) first[p + 1] = first[p] + count[p];
+        nbr.resize(first[m]);
+        tbb::parallel_for(tbb::blocked_range<std::size_t>(0, m, 512), [&](const auto& range) {
+            for (std::size_t p = range.begin(); p != range.end(); ++p) {
+                std::uint32_t k = first[p];
+                grid.ForEachWithin(positions[p], list_radius[p], [&](std::uint32_t j, const Vec3f&, float) {
+                    if (j != p) nbr[k++] = j;
+                });
+            }
+        });
+        built = positions;
+        std::fill(moved.begin(), moved.end(), 0.0f);
+    };
+    build_lists();
+    const auto neighbor = [&](std::uint32_t j) -> const Vec3f& { return j < m ? positions[j] : points[j - m]; };
+    std::vector<float> step_len(m);
+    std::vector<std::uint8_t> fast(m, 0);
+    std::vector<std::uint32_t> fast_ids, extra_first(m + 1), extra;
+    std::vector<std::vector<std::uint32_t>> fast_nbrs;
+    for (int iter = 0; iter < params.iterations; ++iter) {
+        // The lists hold every neighbour within radius[a] of a particle a for the pairs of
+        // "slow" particles, those that moved less than half the smallest slack
+        // (list_radius - radius) since the lists were built. The few "fast" ones (a particle
+        // jumping to another sample's tangent plane at a scan's edge) are found on a grid of the
+        // current positions, and their pushes on slow particles scattered to those; when more
+        // than 3 % are fast, every list is rebuilt.
+        float min_slack = INFINITY, max_radius = 0.0f;
+        for (std::size_t p = 0; p < m; ++p) {
+            min_slack = std::min(min_slack, list_radius[p] - radius[p]);
+            max_radius = std::max(max_radius, radius[p]);
+        }
+        fast_ids.clear();
+        for (std::size_t p = 0; p < m; ++p)
+            if (2.0f * moved[p] >= min_slack) fast_ids.push_back(static_cast<std::uint32_t>(p));
+        if (fast_ids.size() * 33 > m || min_slack <= 0.0f) {
+            build_lists();
+            fast_ids.clear();
+        }
+        std::fill(fast.begin(), fast.end(), 0);
+        for (const std::uint32_t f : fast_ids) fast[f] = 1;
+        std::fill(extra_first.begin(), extra_first.end(), 0);
+        extra.clear();
+        if (!fast_ids.empty()) {
+            if (params.fixed_input) std::copy(positions.begin(), positions.end(), all.begin());
+            const std::span<const Vec3f> pts =
+                params.fixed_input ? std::span<const Vec3f>(all) : std::span<const Vec3f>(positions);
+            const UniformGrid grid(pts, max_radius);
+            fast_nbrs.assign(fast_ids.size(), {});
+            tbb::parallel_for(tbb::blocked_range<std::size_t>(0, fast_ids.size(), 16), [&](const auto& range) {
+                for (std::size_t k = range.begin(); k != range.end(); ++k) {
+                    const std::uint32_t f = fast_ids[k];
+                    grid.ForEachWithin(positions[f], max_radius, [&](std::uint32_t j, const Vec3f&, float) {
+                        if (j != f) fast_nbrs[k].push_back(j);
+                    });
+                }
+            });
+            // Pushes of fast particles on slow ones, grouped by the slow particle (stable: in
+            // the order of the fast particles).
+            std::vector<std::pair<std::uint32_t, std::uint32_t>> pairs;
+            for (std::size_t k = 0; k < fast_ids.size(); ++k)
+                for (const std::uint32_t j : fast_nbrs[k])
+                    if (j < m && !fast[j]) pairs.emplace_back(j, fast_ids[k]);
+            std::stable_sort(pairs.begin(), pairs.end(), [](const auto& a, const auto& b) { return a.first < b.first; });
+            for (const auto& pr : pairs) ++extra_first[pr.first + 1];
+            for (std::size_t p = 0; p < m; ++p) extra_first[p + 1] += extra_first[p];
+            extra.resize(pairs.size());
+            for (std::size_t k = 0; k < pairs.size(); ++k) extra[k] = pairs[k].second;
+        }
         // Linear repulsion (eq. 2.2, 2.3), then back onto the tangent plane of the closest
         // original point (2.3.3). Jacobi update: every particle reads the previous positions.
         tbb::parallel_for(tbb::blocked_range<std::size_t>(0, m, 512), [&](const auto& range) {
             for (std::size_t p = range.begin(); p != range.end(); ++p) {
                 const Vec3f x = positions[p];
-                const float r = radius[p];
-                Vec3d force = Vec3d::Zero();
-                grid.ForEachWithin(x, r, [&](std::uint32_t j, const Vec3f& y, float d2) {
-                    if (j == p) return;
-                    const float d = std::sqrt(d2);
-                    force += ((r - d) * (x - y)).cast<double>();
-                });
+                const float r = radius[p], r2 = r * r;
+                Vec3f force = Vec3f::Zero();
+                const auto push = [&](std::uint32_t j) {
+                    const Vec3f d = x - neighbor(j);
+                    const float d2 = d.squaredNorm();
+                    if (d2 <= r2) force += (r - std::sqrt(d2)) * d;
+                };
+                if (fast[p]) {
+                    const std::size_t k = static_cast<std::size_t>(
+                        std::lower_bound(fast_ids.begin(), fast_ids.end(), static_cast<std::uint32_t>(p)) - fast_ids.begin());
+                    for (const std::uint32_t j : fast_nbrs[k]) push(j);
+                } else {
+                    for (std::uint32_t k = first[p]; k < first[p + 1]; ++k)
+                        if (nbr[k] >= m || !fast[nbr[k]]) push(nbr[k]);
+                    for (std::uint32_t k = extra_first[p]; k < extra_first[p + 1]; ++k) push(extra[k]);
+                }
                 // Step: a lone neighbour at distance d moves x by 0.3 (r - d) (k = 0.3 / r).
-                Vec3d step = force * (0.3 / r);
-                const double len = step.norm();
-                if (len > 0.5 * r) step *= 0.5 * r / len;
-                next[p] = OntoSurface(x + step.cast<float>());
+                Vec3f step = force * (0.3f / r);
+                const float len = step.norm();
+                if (len > 0.5f * r) step *= 0.5f * r / len;
+                std::uint32_t h = home[p];
+                next[p] = OntoSurface(x + step, h);
+                home[p] = h;
+                step_len[p] = (next[p] - x).norm();
             }
         });
         positions.swap(next);
+        double sum = 0.0;
+        for (std::size_t p = 0; p < m; ++p) {
+            sum += step_len[p];
+            moved[p] = (positions[p] - built[p]).norm();
+            radius[p] = static_cast<float>(r0 * scale_[home[p]]);
+        }
+        ++st.iterations;
+        st.last_mean_step = sum / static_cast<double>(m) / r0;
         progress.Advance(0.85 / std::max(1, params.iterations));
+        if (st.last_mean_step < params.tolerance) {
+            progress.Advance(0.85 / std::max(1, params.iterations) * (params.iterations - iter - 1));
+            break;
+        }
     }
 
-    // Final MLS projection (2.3.3); normals oriented like the closest original normal.
+    // Final MLS projection (2.3.3); normals oriented like the closest original normal. With
+    // cached fits: the MLS fit at each original point once (n fits rather than m projections),
+    // every particle moved onto the polynomial of its closest original point; where that point
+    // has no fit, the particle's own MLS projection.
     const MlsSurface mls(input_, tree);
-    const MlsSurface::Batch batch = mls.ProjectAll(positions);
+    MlsSurface::Batch batch;
+    std::vector<std::uint32_t> nearest(m);
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, m, 1024), [&](const auto& range) {
+        for (std::size_t p = range.begin(); p != range.end(); ++p) nearest[p] = WalkNearest(positions[p], home[p]);
+    });
+    if (params.cached_fits) {
+        std::vector<std::optional<MlsPatch>> patches(n);
+        std::vector<std::uint8_t> used(n, 0);
+        for (std::size_t p = 0; p < m; ++p) used[nearest[p]] = 1;
+        tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 256), [&](const auto& range) {
+            for (std::size_t i = range.begin(); i != range.end(); ++i)
+                if (used[i]) patches[i] = mls.Fit(points[i]);
+        });
+        batch.positions.resize(m);
+        batch.normals.resize(m);
+        tbb::parallel_for(tbb::blocked_range<std::size_t>(0, m, 1024), [&](const auto& range) {
+            for (std::size_t p = range.begin(); p != range.end(); ++p) {
+                const std::optional<MlsPatch>& patch = patches[nearest[p]];
+                std::optional<MlsPoint> q = patch ? std::optional<MlsPoint>(patch->Project(positions[p])) : mls.Project(positions[p]);
+                batch.positions[p] = q ? q->position : positions[p];
+                batch.normals[p] = q ? q->normal : Vec3f::Zero();
+            }
+        });
+    } else {
+        batch = mls.ProjectAll(positions);
+    }
     out_normals.resize(m);
     for (std::size_t p = 0; p < m; ++p) {
-        const std::uint32_t q = tree.Nearest(positions[p]).index;
+        const std::uint32_t q = nearest[p];
         Vec3f nrm = normals[q];
         if (batch.normals[p].allFinite() && batch.normals[p].squaredNorm() > 0.5f &&
             batch.positions[p].allFinite() && (batch.positions[p] - positions[p]).norm() < r0) {

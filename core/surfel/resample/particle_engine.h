@@ -13,6 +13,7 @@
 
 #include "surfel/base/point_cloud.h"
 #include "surfel/base/progress.h"
+#include "surfel/spatial/kd_tree.h"
 
 namespace surfel {
 
@@ -41,6 +42,26 @@ struct ParticleParams {
     /// The input samples act as particles that repel but never move (keep-input resampling):
     /// the repulsion radius is then that of count + input size particles.
     bool fixed_input = false;
+    /// Initial placement (2.3.1). kJitter: each particle at its sample, jittered within r0 / 4 in
+    /// the tangent plane. kDisk: the particles a sample receives split its tangent disk of the
+    /// sample's area on a Vogel spiral (the splitting of notes 3.2.2 done at once), so that the
+    /// start is already nearly even and fewer relaxation steps reach the same spacing.
+    enum class Spread { kJitter, kDisk } spread = Spread::kJitter;
+    /// Stop relaxing once the mean step of a relaxation step falls below this fraction of the
+    /// repulsion radius (0 = always run `iterations`). The mean is summed in particle order, so
+    /// the stopping step does not depend on the thread count.
+    double tolerance = 0.0;
+    /// Final projection by cached local fits: the MLS fit (MlsSurface::Fit) at each original
+    /// point that is some particle's closest, every particle moved onto its closest point's
+    /// polynomial. false: every particle's own MLS projection (notes 2.3.3).
+    bool cached_fits = false;
+};
+
+/// What one Run did.
+struct ParticleStats {
+    int iterations = 0;           ///< Relaxation steps run (<= params.iterations).
+    int neighbor_rebuilds = 0;    ///< Verlet neighbour lists built.
+    double last_mean_step = 0.0;  ///< Mean step of the last relaxation step / r0.
 };
 
 /// A particle simulation prepared over one input cloud: its kd-tree, sampling density
@@ -70,7 +91,7 @@ public:
     /// input normal) of params.count particles. Deterministic for a seed, whatever the thread
     /// count (Jacobi updates). Advances `progress` by 1 in all.
     void Run(const ParticleParams& params, std::vector<Vec3f>& positions, std::vector<Vec3f>& normals,
-             ProgressTracker& progress) const;
+             ProgressTracker& progress, ParticleStats* stats = nullptr) const;
 
     /// Relaxation filter of dynamic sampling (notes 3.2.3): `iterations` Jacobi steps of the
     /// linear repulsion (eq. 2.2-2.3, as in Run) among `positions` within `radius` (model units,
@@ -85,6 +106,12 @@ private:
     // A moved particle back onto the sampled surface (2.3.3): the tangent plane of the closest
     // original point, within that point's reach.
     Vec3f OntoSurface(Vec3f moved) const;
+    // The same with the closest original point found by WalkNearest from `home`, which it updates.
+    Vec3f OntoSurface(Vec3f moved, std::uint32_t& home) const;
+    // The input point closest to x by a greedy walk over the input's k-nearest-neighbour graph
+    // from `start` (a particle moves a fraction of the spacing per step, so its closest sample
+    // is its last one or a neighbour of it); ties go to the lower index.
+    std::uint32_t WalkNearest(const Vec3f& x, std::uint32_t start) const;
 
     const PointCloud& input_;
     std::span<const Vec3f> normals_;
@@ -92,6 +119,8 @@ private:
     std::vector<float> reach_radius_;  // r_i of the sampling density (distance to the 6th neighbour)
     std::vector<double> scale_;        // repulsion radius scale per input point
     std::vector<double> weight_;       // area / scale^2 per input point
+    std::vector<double> area_;         // the (capped) area 1 / rho each input point stands for
+    KnnTable graph_;                   // the input's k-nearest-neighbour graph, for WalkNearest
     double total_ = 0.0;
     float median_radius_ = 0.0f;
 };

@@ -179,7 +179,7 @@ std::size_t OutputCount(const ResampleOptions& options, const ParticleEngine& en
 // Particle simulation (2.3): the new points; with keep_input the input repels them. The
 // output: kept input points first, then the particles, attributes interpolated from the input.
 void RunParticles(const PointCloud& input, std::span<const Vec3f> normals, std::span<const float> variation,
-                  const ResampleOptions& options, ProgressTracker& tracker, PointCloud& out) {
+                  const ResampleOptions& options, ProgressTracker& tracker, PointCloud& out, ResampleReport& report) {
     const std::size_t n = input.size();
     const ParticleEngine engine(input, normals, variation, options.adaptive);
     const std::size_t count = OutputCount(options, engine, n);
@@ -187,9 +187,14 @@ void RunParticles(const PointCloud& input, std::span<const Vec3f> normals, std::
     params.seed = options.seed;
     params.iterations = options.iterations;
     params.fixed_input = options.keep_input;
+    params.tolerance = options.relax_tolerance;
+    params.cached_fits = options.cached_fits;
+    params.spread = options.spread_disk ? ParticleParams::Spread::kDisk : ParticleParams::Spread::kJitter;
     params.count = options.keep_input ? count - n : count;
     std::vector<Vec3f> positions, particle_normals;
-    engine.Run(params, positions, particle_normals, tracker);
+    ParticleStats stats;
+    engine.Run(params, positions, particle_normals, tracker, &stats);
+    report.iterations = stats.iterations;
 
     const std::size_t first = options.keep_input ? n : 0;
     out.positions.reserve(count);
@@ -356,6 +361,7 @@ void ResampleOptions::Validate() const {
     if (target > 0) CheckRange("target", static_cast<double>(target), 1.0, static_cast<double>(kMaxResampleTarget));
     if (spacing != 0) CheckPositive("spacing", spacing);
     CheckRange("iterations", iterations, 0, kMaxResampleIterations);
+    CheckRange("relax_tolerance", relax_tolerance, 0.0, 1.0);
     CheckRange("mls_degree", mls_degree, kMinMlsDegree, kMaxMlsDegree);
     CheckAtLeast("mls_h", mls_h, 0.0);
     if (method == ResampleMethod::kMls && keep_input)
@@ -422,7 +428,7 @@ ResampleResult Resample(const PointCloud& input, const ResampleOptions& options,
 
     PointCloud& out = result.cloud;
     switch (options.method) {
-        case ResampleMethod::kParticle: RunParticles(input, normals, variation, options, tracker, out); break;
+        case ResampleMethod::kParticle: RunParticles(input, normals, variation, options, tracker, out, report); break;
         case ResampleMethod::kMls: RunMls(input, normals, options, tracker, out, report); break;
         case ResampleMethod::kSplit: RunSplit(input, normals, options, tracker, out, report); break;
     }

@@ -84,7 +84,8 @@ struct MlsSurface::Impl {
         return static_cast<float>(opt.h * (es / ws) / density.median_spacing);
     }
 
-    std::optional<MlsPoint> Project(const Vec3f& xf, std::vector<Neighbor>& nbrs, FitStats* stats = nullptr) const {
+    std::optional<MlsPoint> Project(const Vec3f& xf, std::vector<Neighbor>& nbrs, FitStats* stats = nullptr,
+                                    MlsPatch* patch = nullptr) const {
         const float h = LocalH(xf, nbrs);
         const Vec3d x = xf.cast<double>();
         // Neighbours relative to x (small, well-conditioned numbers), as arrays for the
@@ -146,7 +147,16 @@ struct MlsSurface::Impl {
         out.position = (x + q + g.c[0] * n).cast<float>();
         Vec3d normal = frame.NormalAt(g, 0.0, 0.0);
         // Orientation: agree with the cloud's normals where it has them.
-        if (normal.dot(WeightedNormal(cloud, nb)) < 0) normal = -normal;
+        const bool flip = normal.dot(WeightedNormal(cloud, nb)) < 0;
+        if (flip) normal = -normal;
+        if (patch) {
+            patch->origin = x + q;
+            patch->u = frame.u;
+            patch->v = frame.v;
+            patch->n = frame.n;
+            for (int k = 0; k < 6; ++k) patch->c[k] = g.c[k];
+            patch->sign = flip ? -1.0 : 1.0;
+        }
         out.normal = normal.cast<float>();
         out.iterations = it;
         out.neighbors = static_cast<int>(m);
@@ -276,6 +286,24 @@ const std::optional<MlsScaleChoice>& MlsSurface::scale_choice() const { return i
 std::optional<MlsPoint> MlsSurface::Project(const Vec3f& x) const {
     std::vector<Neighbor> buf;
     return impl_->Project(x, buf);
+}
+
+std::optional<MlsPatch> MlsSurface::Fit(const Vec3f& x) const {
+    std::vector<Neighbor> buf;
+    MlsPatch patch;
+    if (!impl_->Project(x, buf, nullptr, &patch)) return std::nullopt;
+    return patch;
+}
+
+MlsPoint MlsPatch::Project(const Vec3f& y) const {
+    const Vec3d d = y.cast<double>() - origin;
+    const double a = d.dot(u), b = d.dot(v);
+    PolyCoeffs g;
+    for (int k = 0; k < 6; ++k) g.c[k] = c[k];
+    MlsPoint out;
+    out.position = (origin + a * u + b * v + g(a, b) * n).cast<float>();
+    out.normal = (sign * (n - g.Dx(a, b) * u - g.Dy(a, b) * v).normalized()).cast<float>();
+    return out;
 }
 
 MlsSurface::Batch MlsSurface::ProjectAll(std::span<const Vec3f> points, const ProgressFn& progress) const {

@@ -113,6 +113,20 @@ struct MlsPoint {
     int neighbors = 0;
 };
 
+/// The MLS fit at one point kept for re-use (a cached local fit): the converged reference plane
+/// (foot q, frame u, v, n) and the polynomial g over it (notes eq. 1.3), in world units.
+struct MlsPatch {
+    Vec3d origin, u, v, n;      ///< The plane's foot q and its frame; g is over (u, v) about q.
+    double c[6] = {0, 0, 0, 0, 0, 0};  ///< g(a, b) = c0 + c1 a + c2 b + c3 a^2 + c4 a b + c5 b^2.
+    double sign = 1.0;          ///< The normal's orientation: +1 along n, -1 against it.
+
+    /// y moved along n onto the graph of g: q + a u + b v + g(a, b) n, with (a, b) the plane
+    /// coordinates of y, and the graph's unit normal there (oriented like the fit's). Exact MLS
+    /// at the fit's own point; elsewhere the polynomial's extrapolation, good to O(|(a, b)|^3)
+    /// for a distance well within h.
+    MlsPoint Project(const Vec3f& y) const;
+};
+
 /// The MLS projection operator Psi_P of a point set.
 ///
 /// Reference plane (notes eq. 1.2): minimise sum_i (n.p_i - D)^2 theta(|p_i - q|) where q is the
@@ -136,6 +150,10 @@ public:
 
     /// Projects x onto the surface; nullopt where too few points lie within reach.
     std::optional<MlsPoint> Project(const Vec3f& x) const;
+
+    /// The fit that Project(x) uses, kept (MlsPatch); nullopt where Project(x) is.
+    /// patch.Project(x) equals Project(x) up to rounding.
+    std::optional<MlsPatch> Fit(const Vec3f& x) const;
 
     /// Projects every point of `points` in parallel; a point that cannot be projected keeps its
     /// position and reports `failed`. Output order equals input order; thread-count independent.

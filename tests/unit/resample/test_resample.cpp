@@ -129,23 +129,70 @@ TEST(Resample, AdaptiveIsDenserOnTheTorusInnerRim) {
         EXPECT_LE(ShapeDistance(Shape::kTorus, p.cast<double>()), Tolerance(Shape::kTorus) * kTorusMinorRatio);
 }
 
+// The engine's faster variants (disk spreading, early stop, cached local fits) keep the
+// sphere's particles on the surface and evenly spaced; the early stop runs fewer steps.
+TEST(Resample, FastVariantsStayOnTheSphereAndEven) {
+    const PointCloud input = Sample(Shape::kSphere);
+    ResampleOptions o = Count(4 * kInput);
+    o.spread_disk = true;
+    o.cached_fits = true;
+    o.relax_tolerance = 0.006;
+    const ResampleResult r = Resample(input, o);
+    ASSERT_EQ(r.cloud.size(), 4 * kInput);
+    double worst = 0.0;
+    for (const Vec3f& p : r.cloud.positions) worst = std::max(worst, ShapeDistance(Shape::kSphere, p.cast<double>()));
+    std::printf("fast variants sphere x4: %d steps, worst distance %.3g, NN CV %.3f\n", r.report.iterations, worst,
+                r.report.spacing_cv);
+    EXPECT_LE(worst, 1e-3);
+    EXPECT_LE(r.report.spacing_cv, 0.15);
+    EXPECT_GT(r.report.iterations, 0);
+    EXPECT_LT(r.report.iterations, o.iterations);
+    o.relax_tolerance = 1.5;
+    EXPECT_THROW(Resample(input, o), Error);
+}
+
+// A cached fit reproduces the projection at its own point, and moves nearby points onto the
+// sphere within the quadratic's extrapolation error.
+TEST(ResampleMls, CachedFitReproducesTheProjection) {
+    const PointCloud input = Sample(Shape::kSphere);
+    const KdTree tree(input.positions);
+    const MlsSurface mls(input, tree);
+    const Vec3f x = input.positions[17];
+    const std::optional<MlsPatch> patch = mls.Fit(x);
+    const std::optional<MlsPoint> direct = mls.Project(x);
+    ASSERT_TRUE(patch && direct);
+    const MlsPoint cached = patch->Project(x);
+    EXPECT_LT((cached.position - direct->position).norm(), 1e-6f);
+    EXPECT_GT(cached.normal.dot(direct->normal), 0.999999f);
+    const Vec3f t = x.normalized().unitOrthogonal();
+    const MlsPoint off = patch->Project(x + 0.02f * t);  // about half the input spacing away
+    EXPECT_NEAR(off.position.norm(), 1.0, 1e-3);
+    EXPECT_GT(std::abs(off.normal.dot(off.position.normalized())), 0.999f);  // the cloud has no normals
+    EXPECT_GT(off.normal.dot(direct->normal), 0.99f);                        // oriented like the fit's
+}
+
 TEST(Resample, SameOutputWhateverTheThreadCount) {
     const PointCloud input = Sample(Shape::kTorus, 3000);
     ResampleOptions o = Count(9000);
     o.adaptive = true;
-    ResampleResult one, many;
-    {
-        tbb::global_control limit(tbb::global_control::max_allowed_parallelism, 1);
-        one = Resample(input, o);
+    for (const bool fast : {false, true}) {
+        o.spread_disk = o.cached_fits = fast;
+        o.relax_tolerance = fast ? 0.02 : 0.0;
+        ResampleResult one, many;
+        {
+            tbb::global_control limit(tbb::global_control::max_allowed_parallelism, 1);
+            one = Resample(input, o);
+        }
+        {
+            tbb::global_control limit(tbb::global_control::max_allowed_parallelism, 4);
+            many = Resample(input, o);
+        }
+        ASSERT_EQ(one.cloud.size(), many.cloud.size());
+        EXPECT_EQ(one.cloud.positions, many.cloud.positions);
+        EXPECT_EQ(one.cloud.normals, many.cloud.normals);
+        EXPECT_EQ(one.cloud.radii, many.cloud.radii);
+        EXPECT_EQ(one.report.iterations, many.report.iterations);
     }
-    {
-        tbb::global_control limit(tbb::global_control::max_allowed_parallelism, 4);
-        many = Resample(input, o);
-    }
-    ASSERT_EQ(one.cloud.size(), many.cloud.size());
-    EXPECT_EQ(one.cloud.positions, many.cloud.positions);
-    EXPECT_EQ(one.cloud.normals, many.cloud.normals);
-    EXPECT_EQ(one.cloud.radii, many.cloud.radii);
 }
 
 // The interpolation filter is a linear fit in the tangent plane: for an attribute linear in
