@@ -1,5 +1,6 @@
 #include "service_client.h"
 
+#include <atomic>
 #include <chrono>
 #include <filesystem>
 #include <fstream>
@@ -145,17 +146,22 @@ v1::Cloud ServiceClient::UploadFile(const std::string& path, const ByteProgress&
     Authorize(ctx);
 
     // The file's SHA-256 on a second thread, beside the sending: when it is ready, a server that
-    // already has the cloud is asked, and the upload is cancelled (nothing more sent; on a slow
-    // link most of the file). Hashing at ~1.8 GB/s, it finishes before the sending does.
+    // already has the cloud is asked, and while less than half of the file has been sent the
+    // upload is cancelled (on a slow link most of the file is then never sent; the part file
+    // stays on the server, and the next upload of the file resumes it and is deduplicated). Past
+    // half (loopback, fast links) the upload runs to its end and the server deduplicates it,
+    // leaving no part file. Hashing at ~1.8 GB/s, it finishes before the sending does.
     std::string sha, hash_error;
     std::optional<v1::Cloud> stored;
+    std::atomic<std::uint64_t> sent{offset};
     std::thread hasher([&] {
         try {
             sha = FileSha256(path);
             v1::GetCloudRequest req;
             req.set_cloud_id(sha);
             v1::Cloud c;
-            if (CallUnary(stub_.get(), &v1::Surfel::Stub::GetCloud, req, &c, timeout_s_, token_).ok()) {
+            if (sent.load() < total / 2 &&
+                CallUnary(stub_.get(), &v1::Surfel::Stub::GetCloud, req, &c, timeout_s_, token_).ok()) {
                 stored = std::move(c);
                 ctx.TryCancel();
             }
@@ -190,6 +196,7 @@ v1::Cloud ServiceClient::UploadFile(const std::string& path, const ByteProgress&
         req.set_write_offset(static_cast<std::int64_t>(offset));
         offset += n;
         req.set_finish_write(offset >= total);
+        sent.store(offset);
         if (!writer->Write(req)) {
             open = false;
             break;

@@ -59,7 +59,8 @@ public:
     /// that fingerprints the file (size, modification time, first and last MiB), so a broken
     /// upload of the unchanged file resumes where the server's committed size ends. The file's
     /// SHA-256 is computed on a second thread meanwhile: when the server already has that cloud
-    /// the upload is cancelled and the stored cloud returned (deduplicated), and at the end the
+    /// and less than half of the file is sent, the upload is cancelled and the stored cloud
+    /// returned (deduplicated; otherwise the server deduplicates it), and at the end the
     /// server's cloud id must equal it (std::runtime_error otherwise: the file changed).
     v1::Cloud UploadFile(const std::string& path, const ByteProgress& progress = {}, std::size_t chunk = 256 << 10);
     v1::Cloud GetCloud(const std::string& id);
