@@ -55,9 +55,13 @@ public:
     /// std::runtime_error naming a PEM file of `options` that cannot be read.
     explicit ServiceClient(const std::string& target, double timeout_s = 30.0, const ConnectOptions& options = {});
 
-    /// Uploads a file (chunks of `chunk` bytes). The upload id is the file's SHA-256, so a
-    /// broken upload resumes where the server's committed size ends, and a file the server
-    /// already has is not sent at all.
+    /// Uploads a file (chunks of `chunk` bytes). Sending starts at once, under an upload id
+    /// that fingerprints the file (size, modification time, first and last MiB), so a broken
+    /// upload of the unchanged file resumes where the server's committed size ends. The file's
+    /// SHA-256 is computed on a second thread meanwhile: when the server already has that cloud
+    /// and less than half of the file is sent, the upload is cancelled and the stored cloud
+    /// returned (deduplicated; otherwise the server deduplicates it), and at the end the
+    /// server's cloud id must equal it (std::runtime_error otherwise: the file changed).
     v1::Cloud UploadFile(const std::string& path, const ByteProgress& progress = {}, std::size_t chunk = 256 << 10);
     v1::Cloud GetCloud(const std::string& id);
     v1::Job Submit(const v1::JobSpec& spec);

@@ -4,9 +4,14 @@
 /// written, then (Finish) deduplicated by SHA-256, parsed and validated, moved into the cloud
 /// store and recorded. The gRPC Upload reactor and the HTTP POST /v1/clouds handler both drive
 /// one of these; neither knows how a cloud is stored.
+///
+/// Speed (issue 19.3, docs/service.md "Upload path"): the bytes are written with write(2) and
+/// hashed as they arrive; when the blob store adopts the part file (the directory backend
+/// renames it into place), writeback to disk is started every few MiB while the upload goes on
+/// (sync_file_range), so that the fsync before the acknowledgement finds little left to do, and
+/// Finish parses the file from a read-only mapping (no copy) while another thread fsyncs it.
 
 #include <cstdint>
-#include <fstream>
 #include <string>
 #include <string_view>
 
@@ -63,9 +68,13 @@ class UploadSession {
     std::string id_, filename_, path_;
     bool claimed_ = false;
     bool hashed_ = false;  // hash_ covers the committed bytes
+    bool adopt_ = false;   // the blob store renames the part file into place (early writeback pays)
     std::uint64_t committed_ = 0;
-    std::ofstream out_;
+    std::uint64_t writeback_from_ = 0;  // bytes before this offset have had writeback started
+    int fd_ = -1;                       // the part file, open for appending
     worker::Sha256 hash_;
+
+    void CloseFile();
 };
 
 }  // namespace surfel::server

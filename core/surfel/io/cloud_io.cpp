@@ -17,7 +17,7 @@ namespace {
 
 // One known format. `magic` recognises its content (nullptr: the fallback when no magic
 // matches), `encoding` names the content's variant for SniffCloudFormat, `parse` reads it
-// (`info` is PLY's header, left alone by the others) and `format` writes it.
+// (`info` is PLY's header; the others fill only its `attributes`) and `format` writes it.
 struct CloudFormatEntry {
     CloudFileFormat format;
     std::string_view name;
@@ -60,8 +60,10 @@ constexpr std::string_view kXyzExtensions[] = {".xyz", ".txt", ".pts"};
 std::string_view XyzEncoding(std::string_view) { return "xyz"; }
 
 PointCloud ParseXyzEntry(std::string_view data, std::string_view name, const PlyReadOptions& options,
-                         PlyHeaderInfo*) {
-    return ParseXyz(data, name, options.max_points);
+                         PlyHeaderInfo* info) {
+    PointCloud cloud = ParseXyz(data, name, options.max_points);
+    if (info) info->attributes = cloud.AttributeNames();
+    return cloud;
 }
 
 std::string FormatXyzEntry(const PointCloud& cloud, bool) { return FormatXyz(cloud); }
@@ -125,12 +127,16 @@ PointCloud ParsePointCloud(std::string_view data, std::string_view name, const P
 }
 
 CloudFileSummary InspectCloudFile(std::string_view data, std::string_view name, const PlyReadOptions& options) {
-    const PointCloud cloud = ParsePointCloud(data, name, options);
+    // Only the positions are kept (bounds, the count); the parse and its checks are the full ones.
+    PlyReadOptions positions = options;
+    positions.positions_only = true;
+    PlyHeaderInfo info;
+    const PointCloud cloud = EntryForContent(data).parse(data, name, positions, &info);
     if (cloud.empty()) throw Error(ErrorCode::kInvalidArgument, std::string(name) + ": the cloud has no points");
     CloudFileSummary s;
     s.points = cloud.size();
     s.bounds = cloud.Bounds();
-    s.attributes = cloud.AttributeNames();
+    s.attributes = std::move(info.attributes);
     s.format = SniffCloudFormat(data);
     return s;
 }

@@ -364,10 +364,21 @@ private:
         const std::uint64_t n = e.count;
         if (rec > 0 && n > remaining() / rec) Truncated(e, remaining() / rec);
         const char* base = data_.data() + pos_;
-        std::size_t off = 0;
-        for (std::size_t k = 0; k < e.props.size(); ++k) {
-            if (sinks.size() > k && sinks[k].active()) ExtractColumn(e.props[k].type, base, rec, n, off, swap_, sinks[k]);
-            off += ScalarSize(e.props[k].type);
+        // Block by block (about 64 KiB of records each), every column of a block while it is in
+        // the cache: one pass over the bytes instead of one per property.
+        const std::uint64_t block = rec > 0 ? std::max<std::uint64_t>(1, (64u << 10) / rec) : n;
+        for (std::uint64_t b = 0; rec > 0 && b < n; b += block) {
+            const std::size_t m = static_cast<std::size_t>(std::min(block, n - b));
+            std::size_t off = 0;
+            for (std::size_t k = 0; k < e.props.size(); ++k) {
+                if (sinks.size() > k && sinks[k].active()) {
+                    Sink s = sinks[k];
+                    if (s.f) s.f += b * s.stride;
+                    else s.d += b * s.stride;
+                    ExtractColumn(e.props[k].type, base + b * rec, rec, m, off, swap_, s);
+                }
+                off += ScalarSize(e.props[k].type);
+            }
         }
         pos_ += rec * n;
     }
@@ -494,6 +505,8 @@ PointCloud ParsePly(std::string_view data, std::string_view file, const PlyReadO
             Fail(file, "header line " + std::to_string(vertex->header_line) + ": element 'vertex' has no property '" + axis + "'");
 
     PointCloud cloud;
+    std::vector<std::string> attributes;  // cloud.AttributeNames() of the full parse
+    const bool keep = !options.positions_only;
     BodyReader body(data, file, h);
     for (const auto& e : h.elements) {
         std::vector<Sink> sinks(e.props.size());
@@ -501,10 +514,16 @@ PointCloud ParsePly(std::string_view data, std::string_view file, const PlyReadO
         const std::uint64_t capacity = body.MaxRecords(e);
         if (&e == vertex) {
             const std::uint64_t n = capacity;
+            // Which property feeds which attribute is decided here, whether or not the values
+            // are kept (positions_only): `claimed` marks the properties of the named attributes,
+            // the rest become extras; `attributes` lists them as AttributeNames() would.
+            std::vector<bool> claimed(e.props.size(), false);
             auto idx = [&](const char* name) { return e.Find(name); };
-            auto bind_vec3 = [&](std::vector<Vec3f>& dst, const char* a, const char* b, const char* c) {
+            auto bind_vec3 = [&](std::vector<Vec3f>& dst, const char* a, const char* b, const char* c, bool store) {
                 const int ia = idx(a), ib = idx(b), ic = idx(c);
                 if (ia < 0 || ib < 0 || ic < 0) return false;
+                claimed[ia] = claimed[ib] = claimed[ic] = true;
+                if (!store) return true;
                 dst.resize(n);
                 float* base = dst.data()->data();
                 sinks[ia] = {base + 0, nullptr, 3, 1.0f};
@@ -512,14 +531,19 @@ PointCloud ParsePly(std::string_view data, std::string_view file, const PlyReadO
                 sinks[ic] = {base + 2, nullptr, 3, 1.0f};
                 return true;
             };
-            bind_vec3(cloud.positions, "x", "y", "z");
-            bind_vec3(cloud.normals, "nx", "ny", "nz");
+            bind_vec3(cloud.positions, "x", "y", "z", true);
+            if (bind_vec3(cloud.normals, "nx", "ny", "nz", keep) && n > 0) attributes.emplace_back("normals");
             const int ir = idx("red"), ig = idx("green"), ib = idx("blue"), ia = idx("alpha");
             if (ir >= 0 && ig >= 0 && ib >= 0) {
                 const ScalarType ct = e.props[ir].type;
                 const bool ok = (ct == ScalarType::kUInt8 || IsFloatType(ct)) && e.props[ig].type == ct &&
                                 e.props[ib].type == ct && (ia < 0 || e.props[ia].type == ct);
                 if (ok) {
+                    claimed[ir] = claimed[ig] = claimed[ib] = true;
+                    if (ia >= 0) claimed[ia] = true;
+                    if (n > 0) attributes.emplace_back(ia >= 0 ? "colors(rgba)" : "colors(rgb)");
+                }
+                if (ok && keep) {
                     cloud.color_type = ct == ScalarType::kUInt8 ? ScalarType::kUInt8 : ScalarType::kFloat32;
                     cloud.color_has_alpha = ia >= 0;
                     cloud.colors.assign(n, {0.f, 0.f, 0.f, 1.f});
@@ -532,15 +556,21 @@ PointCloud ParsePly(std::string_view data, std::string_view file, const PlyReadO
                 }
             }
             if (const int irad = idx("radius"); irad >= 0) {
-                cloud.radii.resize(n);
-                sinks[irad] = {cloud.radii.data(), nullptr, 1, 1.0f};
+                claimed[irad] = true;
+                if (n > 0) attributes.emplace_back("radius");
+                if (keep) {
+                    cloud.radii.resize(n);
+                    sinks[irad] = {cloud.radii.data(), nullptr, 1, 1.0f};
+                }
             }
             std::size_t extra_count = 0;
             for (std::size_t k = 0; k < e.props.size(); ++k)
-                if (!sinks[k].active() && !e.props[k].is_list) ++extra_count;
-            cloud.extras.reserve(extra_count);  // stable addresses for the sinks below
+                if (!claimed[k] && !e.props[k].is_list) ++extra_count;
+            cloud.extras.reserve(keep ? extra_count : 0);  // stable addresses for the sinks below
             for (std::size_t k = 0; k < e.props.size(); ++k) {
-                if (sinks[k].active() || e.props[k].is_list) continue;
+                if (claimed[k] || e.props[k].is_list) continue;
+                attributes.push_back(e.props[k].name);
+                if (!keep) continue;
                 cloud.extras.push_back({e.props[k].name, e.props[k].type, std::vector<double>(n)});
                 sinks[k] = {nullptr, cloud.extras.back().values.data(), 1, 1.0f};
             }
@@ -577,6 +607,7 @@ PointCloud ParsePly(std::string_view data, std::string_view file, const PlyReadO
                                (v == UINT32_MAX ? std::string("out of range") : std::to_string(v)) + " is not below the vertex count " +
                                std::to_string(cloud.positions.size()));
     if (info) {
+        info->attributes = std::move(attributes);
         info->format = h.format;
         info->comments = h.comments;
         info->elements.clear();

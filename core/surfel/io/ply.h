@@ -32,6 +32,10 @@ struct PlyReadOptions {
     std::uint64_t max_faces = 400'000'000;      ///< Largest accepted face count.
     std::uint64_t max_elements = 1'000'000'000; ///< Largest count of any other element.
     std::size_t max_header_bytes = 64 * 1024;   ///< The header must end within this many bytes.
+    /// Read and check the whole file as usual (the same errors), but keep only the positions
+    /// (and faces): normals, colours, radii and extra properties are left out of the cloud and
+    /// only named in PlyHeaderInfo::attributes. What an upload's check needs (InspectCloudFile).
+    bool positions_only = false;
 };
 
 /// What a file's header said, for `surfel info`.
@@ -45,6 +49,9 @@ struct PlyHeaderInfo {
     std::vector<Element> elements;
     std::vector<std::string> comments;  ///< comment and obj_info lines, without the keyword.
     std::uint64_t face_count = 0;       ///< Polygons in `element face` (before triangulation).
+    /// PointCloud::AttributeNames() of the cloud the file holds, also when positions_only left
+    /// the values out (every parser of the format table fills it).
+    std::vector<std::string> attributes;
 };
 
 /// How to write a PLY file.

@@ -4,6 +4,7 @@
 #include <unistd.h>
 
 #include <filesystem>
+#include <optional>
 
 #include "surfel/base/error.h"
 #include "surfel/base/shapes.h"
@@ -93,6 +94,89 @@ TEST(CloudFormatTable, ParseFollowsTheSniffedFormat) {
         EXPECT_EQ(e.code(), ErrorCode::kResourceExhausted);
         EXPECT_STREQ(e.what(), "c.xyz: line 11: more than 10 points");
     }
+}
+
+// ---- The upload check (InspectCloudFile: positions only, the full parse's checks) ---------------
+
+// The summary of the positions-only parse against the full parse of the same bytes: count,
+// bounds and attribute names equal, or both refuse the bytes with the same code and message.
+void ExpectSummaryMatchesFullParse(const std::string& bytes, const std::string& name) {
+    SCOPED_TRACE(name);
+    std::optional<PointCloud> full;
+    std::string full_error;
+    ErrorCode full_code = ErrorCode::kInternal;
+    try {
+        full = ParsePointCloud(bytes, name);
+        if (full->empty()) throw Error(ErrorCode::kInvalidArgument, name + ": the cloud has no points");
+    } catch (const Error& e) {
+        full.reset();
+        full_error = e.what();
+        full_code = e.code();
+    }
+    try {
+        const CloudFileSummary s = InspectCloudFile(bytes, name);
+        ASSERT_TRUE(full.has_value()) << "the full parse refused it: " << full_error;
+        EXPECT_EQ(s.points, full->size());
+        EXPECT_EQ(s.bounds.min, full->Bounds().min);
+        EXPECT_EQ(s.bounds.max, full->Bounds().max);
+        EXPECT_EQ(s.attributes, full->AttributeNames());
+    } catch (const Error& e) {
+        ASSERT_FALSE(full.has_value()) << "only the summary refused it: " << e.what();
+        EXPECT_EQ(e.code(), full_code);
+        EXPECT_EQ(std::string(e.what()), full_error);
+    }
+}
+
+TEST(InspectCloudFile, AgreesWithTheFullParseOnEveryAttributeLayout) {
+    const std::string head = "ply\nformat ascii 1.0\nelement vertex 3\n";
+    const std::vector<std::pair<std::string, std::string>> layouts = {
+        {"property float x\nproperty float y\nproperty float z\n", "1 2 3\n-1 0 5\n4 4 -2\n"},
+        // normals, rgba colours, a radius and an extra property, in an unusual order
+        {"property uchar red\nproperty float x\nproperty uchar green\nproperty float nx\nproperty float y\n"
+         "property float ny\nproperty uchar blue\nproperty float z\nproperty float nz\nproperty uchar alpha\n"
+         "property float radius\nproperty double intensity\n",
+         "1 0 2 0 0 1 3 0 1 4 0.5 7\n5 1 6 1 0 0 7 2 0 8 0.25 -1\n9 -3 10 0 1 0 11 1 0 12 1 0.5\n"},
+        // colours of mixed types are not colours: three extra properties
+        {"property float x\nproperty float y\nproperty float z\nproperty uchar red\nproperty float green\n"
+         "property uchar blue\n", "0 0 0 1 0.5 3\n1 1 1 4 0.25 6\n2 0 1 7 1 9\n"},
+        // float rgb without alpha
+        {"property double x\nproperty double y\nproperty double z\nproperty float red\nproperty float green\n"
+         "property float blue\n", "0 0 0 1 0.5 0\n1 1 1 0 0.25 1\n2 0 1 0 1 1\n"},
+    };
+    for (const auto& [props, body] : layouts) {
+        const std::string ascii = head + props + "end_header\n" + body;
+        ExpectSummaryMatchesFullParse(ascii, "layout.ply");
+        const PointCloud c = ParsePointCloud(ascii, "layout.ply");
+        ExpectSummaryMatchesFullParse(FormatPly(c), "layout.ply");  // binary little-endian
+        ExpectSummaryMatchesFullParse(FormatXyz(c), "layout.xyz");
+    }
+    // Many records: the binary reader's blocks (64 KiB of records) and their last, short one.
+    ShapeOptions big;
+    big.points = 10'007;
+    big.normals = true;
+    ExpectSummaryMatchesFullParse(FormatPly(SampleShape(Shape::kTorus, big)), "torus.ply");
+    // Faces before the vertices, and their indices checked against the vertex count.
+    const std::string faces = "ply\nformat ascii 1.0\nelement face 1\nproperty list uchar int vertex_indices\n"
+                              "element vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+                              "property float nx\nend_header\n";
+    ExpectSummaryMatchesFullParse(faces + "3 0 1 2\n0 0 0 1\n1 0 0 1\n0 1 0 1\n", "faces.ply");
+    ExpectSummaryMatchesFullParse(faces + "3 0 1 3\n0 0 0 1\n1 0 0 1\n0 1 0 1\n", "faces.ply");
+}
+
+TEST(InspectCloudFile, RefusesWhatTheFullParseRefusesWithTheSameMessage) {
+    const std::string head = "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
+                             "property float z\nproperty float nx\nend_header\n";
+    ExpectSummaryMatchesFullParse(head + "0 0 0 1\n0 nan 0 1\n", "nan.ply");         // not finite
+    ExpectSummaryMatchesFullParse(head + "0 0 0 1\n0 0 0 oops\n", "word.ply");       // an attribute's value
+    ExpectSummaryMatchesFullParse(head + "0 0 0 1\n", "short.ply");                   // too few records
+    ExpectSummaryMatchesFullParse("ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\n"
+                                  "property float z\nproperty float nx\nend_header\n", "empty.ply");
+    ShapeOptions o;
+    o.points = 100;
+    o.normals = true;
+    const std::string binary = FormatPly(SampleShape(Shape::kSphere, o));
+    ExpectSummaryMatchesFullParse(binary.substr(0, binary.size() - 7), "cut.ply");  // truncated
+    ExpectSummaryMatchesFullParse(binary + "xyz", "tail.ply");                       // bytes after the end
 }
 
 // ---- Files ------------------------------------------------------------------------------------

@@ -67,6 +67,10 @@ public:
     bool Exists(const std::string& key) const { return Size(key).has_value(); }
     /// Removes a blob; false when there was none.
     virtual bool Remove(const std::string& key) = 0;
+    /// True when PutFile moves the file itself into the store (a rename) rather than copying
+    /// its bytes: syncing the file to disk early (while an upload is received and validated)
+    /// then shortens PutFile. The directory backend; not the large objects.
+    virtual bool AdoptsFiles() const { return false; }
 };
 
 /// "clouds/<id>": the key of an uploaded cloud (its id is the SHA-256 of its bytes).
@@ -122,6 +126,7 @@ public:
     std::unique_ptr<BlobReader> Open(const std::string& key) const override;
     std::optional<std::uint64_t> Size(const std::string& key) const override;
     bool Remove(const std::string& key) override;
+    bool AdoptsFiles() const override { return true; }
     /// The file that holds `key`.
     std::string PathOf(const std::string& key) const { return dir_ + "/" + key; }
 
