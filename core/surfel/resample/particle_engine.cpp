@@ -124,9 +124,9 @@ void ParticleEngine::Relax(std::vector<Vec3f>& positions, double radius, int ite
                     if (j == p) return;
                     force += ((r - std::sqrt(d2)) * (x - y)).cast<double>();
                 });
-                Vec3d step = force * (0.3 / r);  // as in Run
+                Vec3d step = force * (kRepulsionGain / r);  // as in Run
                 const double len = step.norm();
-                if (len > 0.5 * r) step *= 0.5 * r / len;
+                if (len > kMaxStep * r) step *= kMaxStep * r / len;
                 next[p] = OntoSurface(x + step.cast<float>());
             }
         });
@@ -324,10 +324,11 @@ void ParticleEngine::Run(const ParticleParams& params, std::vector<Vec3f>& posit
                         if (nbr[k] >= m || !fast[nbr[k]]) push(nbr[k]);
                     for (std::uint32_t k = extra_first[p]; k < extra_first[p + 1]; ++k) push(extra[k]);
                 }
-                // Step: a lone neighbour at distance d moves x by 0.3 (r - d) (k = 0.3 / r).
-                Vec3f step = force * (0.3f / r);
+                // Step: a lone neighbour at distance d moves x by kRepulsionGain (r - d).
+                Vec3f step = force * (static_cast<float>(kRepulsionGain) / r);
                 const float len = step.norm();
-                if (len > 0.5f * r) step *= 0.5f * r / len;
+                const float max_step = static_cast<float>(kMaxStep) * r;
+                if (len > max_step) step *= max_step / len;
                 std::uint32_t h = home[p];
                 next[p] = OntoSurface(x + step, h);
                 home[p] = h;
