@@ -52,10 +52,23 @@ v1::JobEvent FinishedEvent(const v1::Job& job) {
     return e;
 }
 
-std::string StoreResult(Store& store, const std::string& job_id, std::string_view bytes) {
+std::string StoreResult(Store& store, const std::string& job_id, std::string_view bytes,
+                        Retention* retention) {
     const std::string sha = Sha256Hex(bytes);
-    store.blobs().PutBytes(ResultBlobKey(job_id), bytes, sha);
+    const std::string key = ResultBlobKey(job_id);
+    if (retention) retention->Reserve(bytes.size(), "result of job " + job_id);
+    try {
+        store.blobs().PutBytes(key, bytes, sha);
+    } catch (...) {
+        if (retention) retention->Release(bytes.size());
+        throw;
+    }
+    if (retention) retention->Stored(key, bytes.size(), bytes.size());
     return sha;
+}
+
+bool StillReusable(const Store& store, const v1::Job& job) {
+    return job.state() != v1::SUCCEEDED || store.blobs().Exists(ResultBlobKey(job.id()));
 }
 
 void SetResult(v1::Job& job, const JobOutput& out) {
@@ -192,7 +205,7 @@ v1::Job JobManager::Submit(const v1::JobSpec& spec, const std::string& tenant) {
     const std::string key = TenantJobKey(spec, tenant);
     std::lock_guard lock(mutex_);
     if (stopping_) throw Error(ErrorCode::kUnavailable, "the server is shutting down");
-    if (auto reused = store_.FindReusable(key)) {
+    if (auto reused = store_.FindReusable(key); reused && detail::StillReusable(store_, *reused)) {
         if (auto it = running_.find(reused->id()); it != running_.end()) *reused = it->second->job;
         reused->set_reused(true);
         spdlog::info("job {}: reused for an identical submission", reused->id());
@@ -348,12 +361,18 @@ void JobManager::WorkerLoop() {
 }
 
 std::shared_ptr<const PointCloud> JobManager::LoadCloud(const std::string& id) {
+    if (options_.retention) options_.retention->Touch(CloudBlobKey(id));  // LRU: used now
     {
         std::lock_guard lock(cache_mutex_);
         for (auto& [cid, cloud] : cache_)
             if (cid == id) return cloud;
     }
-    if (!store_.FindCloud(id)) throw Error(ErrorCode::kNotFound, "cloud " + id + " not found");
+    if (!store_.FindCloud(id)) {
+        if (options_.retention)
+            if (auto m = options_.retention->EvictedMessage(CloudBlobKey(id), "cloud " + id, nullptr))
+                throw Error(ErrorCode::kNotFound, *m);
+        throw Error(ErrorCode::kNotFound, "cloud " + id + " not found");
+    }
     PlyReadOptions limits;
     limits.max_points = options_.max_points;
     // Hashed while read (one pass over the bytes): a cloud's id is its SHA-256, so a flipped
@@ -403,7 +422,7 @@ void JobManager::Execute(const std::string& id) {
     try {
         const JobOutput out =
             RunJob(run->job.spec(), [&](const std::string& cloud_id) { return LoadCloud(cloud_id); }, progress);
-        const std::string sha = detail::StoreResult(store_, id, out.bytes);  // durable first
+        const std::string sha = detail::StoreResult(store_, id, out.bytes, options_.retention);  // durable first
         std::lock_guard lock(mutex_);
         done = run->job;
         detail::SetResult(done, out);
