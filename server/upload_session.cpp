@@ -106,7 +106,7 @@ void UploadSession::Append(std::string_view data) {
     worker::Retention* retention = ops_.retention();
     if (retention) {
         try {
-            retention->Reserve(data.size(), "upload " + id_);
+            retention->Reserve(data.size(), "upload " + id_, committed_ + data.size());
         } catch (const Error& e) {
             const std::uint64_t had = committed_;
             Discard();

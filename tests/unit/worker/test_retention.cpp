@@ -216,6 +216,16 @@ TEST_F(RetentionTest, NeverEvictsACloudThatAQueuedOrRunningJobNeedsAndARefusalEv
     EXPECT_TRUE(CloudStored(c));
     EXPECT_EQ(r.stored_bytes(), 600u);
     EXPECT_EQ(r.reserved_bytes(), 400u);
+    // Larger than the whole quota: refused at once, whatever could be evicted.
+    try {
+        r.Reserve(10, "upload big", 1001);
+        ADD_FAILURE() << "reserved an object larger than the quota";
+    } catch (const Error& e) {
+        EXPECT_EQ(e.code(), ErrorCode::kResourceExhausted);
+        EXPECT_NE(std::string(e.what()).find("upload big: 1001 bytes are more than the whole"),
+                  std::string::npos)
+            << e.what();
+    }
     // The queued job ends: a may go.
     store_->PutJob(Job("jq", a, v1::SUCCEEDED), "kq");
     r.Reserve(1, "result of job jx");

@@ -164,9 +164,13 @@ std::vector<BlobUsage> Retention::Refresh() {
     return lru;
 }
 
-void Retention::Reserve(std::uint64_t bytes, const std::string& what) {
+void Retention::Reserve(std::uint64_t bytes, const std::string& what, std::uint64_t whole) {
     std::lock_guard lock(mutex_);
     const std::uint64_t max = options_.max_disk_bytes;
+    if (max != 0 && std::max(whole, bytes) > max)
+        throw Error(ErrorCode::kResourceExhausted,
+                    what + ": " + std::to_string(std::max(whole, bytes)) +
+                        " bytes are more than the whole --max-disk-gb " + Gb(max));
     if (max == 0 || stored_ + reserved_ + bytes <= max) {
         reserved_ += bytes;
         return;

@@ -87,8 +87,9 @@ public:
 
     /// Reserves `bytes` about to be written for `what` ("upload u1", "result of job j…"),
     /// evicting least recently used blobs when they would not fit under the quota. Throws
-    /// kResourceExhausted (nothing evicted) when they cannot fit.
-    void Reserve(std::uint64_t bytes, const std::string& what);
+    /// kResourceExhausted (nothing evicted) when they cannot fit, or at once when `whole` (the
+    /// object's size with these bytes; an upload's grows chunk by chunk) exceeds the quota itself.
+    void Reserve(std::uint64_t bytes, const std::string& what, std::uint64_t whole = 0);
     /// Gives back reserved bytes that were not written (or were removed: a discarded part file).
     void Release(std::uint64_t bytes);
     /// `reserved` bytes became the stored blob `key` of `size` bytes (used now); `reserved` is 0
