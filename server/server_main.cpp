@@ -327,6 +327,9 @@ int main(int argc, char** argv) {
         limits.max_points = f.max_points;
         limits.max_uploads = f.max_uploads;
         limits.max_upload_inflight_bytes = static_cast<std::uint64_t>(f.max_upload_inflight_mb * 1024 * 1024);
+        if (limits.max_upload_inflight_bytes != 0 && limits.max_upload_inflight_bytes < limits.max_upload_bytes)
+            spdlog::warn("--max-upload-inflight-mb {} is below --max-upload-mb {}: uploads larger than it are "
+                         "always refused", f.max_upload_inflight_mb, f.max_upload_mb);
         // Declared before the service and the server: it outlives both, and runs its queue dry
         // while server->Shutdown waits for the upload calls its tasks finish.
         server::Executor ingest(f.ingest_threads, f.ingest_queue);

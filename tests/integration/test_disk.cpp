@@ -6,7 +6,8 @@
 //  - DeleteCloud of a cloud a queued or running job needs: FAILED_PRECONDITION naming the job;
 //  - a real full filesystem (a 1 MiB tmpfs): an upload that does not fit and a result write
 //    that hits ENOSPC are RESOURCE_EXHAUSTED, no half-written file stays, the server keeps
-//    serving, and what was acknowledged before is intact (SHA-256).
+//    serving, and what was acknowledged before is intact (SHA-256);
+//  - --max-upload-inflight-mb: bytes received and not yet stored, over all upload calls.
 #include <fcntl.h>
 #include <grpcpp/grpcpp.h>
 #include <gtest/gtest.h>
@@ -19,12 +20,14 @@
 #include <filesystem>
 #include <fstream>
 #include <string>
+#include <thread>
 
 #include "server_process.h"
 #include "service_client.h"
 #include "surfel/base/shapes.h"
 #include "surfel/io/file_bytes.h"
 #include "surfel/io/ply.h"
+#include "surfel/v1/surfel.grpc.pb.h"
 #include "surfel/worker/sha256.h"
 
 namespace surfel {
@@ -263,6 +266,54 @@ TEST_F(DiskTest, AFullFilesystemIsResourceExhaustedLeavesNoHalfFileAndLosesNothi
         EXPECT_EQ(worker::Sha256Hex(ReadFileBytes((fs::path(data) / "clouds" / id).string())), id);
     EXPECT_EQ(worker::Sha256Hex(c.Download(j1.id())), c.GetJob(j1.id()).result().sha256());
     server.Kill(SIGTERM);
+}
+
+TEST_F(DiskTest, UploadBytesInFlightAreCappedAndTheHeldBytesKeptForAResume) {
+    const std::string data = (dir_ / "data").string();
+    // 0.25 MiB in flight at most; the sphere file is ~96 KB.
+    testing::ServerProcess server(data, {"--max-upload-inflight-mb", "0.25"});
+    ServiceClient c(server.target());
+    const std::string sphere = Cloud("s.ply", 4000, 1);
+    // One call holds 200 KB received and not stored (no finish_write).
+    auto stub = v1::Surfel::NewStub(grpc::CreateChannel(server.target(), grpc::InsecureChannelCredentials()));
+    grpc::ClientContext ctx;
+    v1::Cloud response;
+    auto writer = stub->Upload(&ctx, &response);
+    v1::UploadRequest held;
+    held.set_upload_id("held-open");
+    held.set_filename("x.ply");
+    held.set_data(std::string(200 << 10, 'x'));
+    ASSERT_TRUE(writer->Write(held));
+    std::int64_t committed = 0;
+    for (int i = 0; i < 300 && committed == 0; ++i) {
+        v1::QueryUploadRequest q;
+        q.set_upload_id("held-open");
+        grpc::ClientContext qc;
+        v1::QueryUploadResponse r;
+        if (stub->QueryUpload(&qc, q, &r).ok()) committed = r.committed_size();
+        if (committed == 0) std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    }
+    ASSERT_EQ(committed, 200 << 10);
+    // 200 KB + 96 KB > 256 KiB: refused, saying which limit.
+    const grpc::Status refused = StatusOf([&] { c.UploadFile(sphere); });
+    EXPECT_EQ(refused.error_code(), grpc::StatusCode::RESOURCE_EXHAUSTED);
+    EXPECT_NE(refused.error_message().find("--max-upload-inflight-mb"), std::string::npos)
+        << refused.error_message();
+    ctx.TryCancel();
+    writer->Finish();
+    // The held call ended: its bytes stay on disk for a resume but are no longer in flight.
+    bool stored = false;
+    for (int i = 0; i < 100 && !stored; ++i) {
+        stored = StatusOf([&] { c.UploadFile(sphere); }).ok();
+        if (!stored) std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    }
+    EXPECT_TRUE(stored);
+    v1::QueryUploadRequest q;
+    q.set_upload_id("held-open");
+    grpc::ClientContext qc;
+    v1::QueryUploadResponse r;
+    ASSERT_TRUE(stub->QueryUpload(&qc, q, &r).ok());
+    EXPECT_EQ(r.committed_size(), 200 << 10);
 }
 
 }  // namespace
