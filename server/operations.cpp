@@ -144,16 +144,18 @@ ResultFile Operations::Result(const Caller& caller, const std::string& job_id) c
                                                         "; results exist only for SUCCEEDED jobs");
     r.key = worker::ResultBlobKey(job_id);
     const std::optional<std::uint64_t> size = store_.blobs().Size(r.key);
-    if (!size) {
-        if (auto m = Evicted(caller, r.key, "result of job " + job_id))
-            throw Error(ErrorCode::kNotFound, *m + "; submit the job again to recompute it");
-        throw Error(ErrorCode::kNotFound, "result of job " + job_id + " is gone");
-    }
+    if (!size) throw Error(ErrorCode::kNotFound, ResultGoneMessage(caller, job_id));
     if (retention_) retention_->Touch(r.key);  // LRU: downloaded now
     r.size = *size;
     r.filename = (r.job.type().empty() ? std::string("result") : r.job.type()) + "-" +
                  job_id.substr(0, 12) + r.job.result().extension();
     return r;
+}
+
+std::string Operations::ResultGoneMessage(const Caller& caller, const std::string& job_id) const {
+    if (auto m = Evicted(caller, worker::ResultBlobKey(job_id), "result of job " + job_id))
+        return *m + "; submit the job again to recompute it";
+    return "result of job " + job_id + " is gone";
 }
 
 std::vector<v1::JobEvent> Operations::FinalEvents(const v1::Job& job) {

@@ -76,6 +76,9 @@ class Operations {
                                   v1::JobState state) const;
     /// kNotFound for an unknown job or a vanished file, kFailedPrecondition unless SUCCEEDED.
     ResultFile Result(const Caller& caller, const std::string& job_id) const;
+    /// Why a SUCCEEDED job's result blob is missing, for the caller: "result of job <id> was
+    /// evicted at …" when retention evicted it, else "result of job <id> is gone".
+    std::string ResultGoneMessage(const Caller& caller, const std::string& job_id) const;
     /// The name of the part file (and of the claim) of a caller's upload id: the id itself for
     /// an unscoped caller, else prefixed by a digest of the tenant (ids are per tenant).
     static std::string ScopedUploadId(const Caller& caller, const std::string& upload_id);

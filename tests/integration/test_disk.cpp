@@ -159,6 +159,11 @@ TEST_F(DiskTest, QuotaEvictsLeastRecentlyUsedFirstAndSaysSoAcrossARestart) {
               std::string::npos)
         << gone_r1.error_message();
     EXPECT_EQ(c.GetJob(j1).state(), v1::SUCCEEDED);  // the record stays; only the bytes went
+    const auto watched = c.Watch(j1, true, false);  // Watch with the result says it too
+    EXPECT_EQ(watched.status_code, grpc::StatusCode::NOT_FOUND);
+    EXPECT_NE(watched.status_message.find("result of job " + j1 + " was evicted at "),
+              std::string::npos)
+        << watched.status_message;
     // An identical submission is not answered by the job whose result is gone: it runs again
     // and gives the same bytes.
     const v1::Job again = c.Submit(Simplify(a, 300));

@@ -157,7 +157,15 @@ void JobManager::Transition(v1::Job& job, v1::JobState to) {
     const std::int64_t now = NowUnixMs();
     if (to == v1::RUNNING) job.set_started_unix_ms(now);
     if (IsFinal(to)) job.set_finished_unix_ms(now);
-    store_.PutJob(job, "");
+    try {
+        store_.PutJob(job, "");
+    } catch (const std::exception& e) {
+        // A worker thread must not die of it (a full disk under SQLite, docs/retention.md): the
+        // change is kept in memory and its watchers told; the store keeps the previous state,
+        // so after a restart an unfinished job runs again.
+        spdlog::error("job {}: cannot record {} in the store: {}", job.id(), v1::JobState_Name(to),
+                      e.what());
+    }
     if (hook_) hook_(job, from);
 }
 

@@ -1,5 +1,6 @@
 // The SQLite backend of the store: one connection in WAL mode behind a mutex.
 #include <SQLiteCpp/SQLiteCpp.h>
+#include <sqlite3.h>
 
 #include <filesystem>
 #include <mutex>
@@ -18,6 +19,17 @@ v1::Job ParseJob(const SQLite::Column& blob) {
     if (!job.ParseFromArray(blob.getBlob(), blob.getBytes()))
         throw Error(ErrorCode::kInternal, "store: a job record does not parse");
     return job;
+}
+
+/// Runs a write; a full disk (SQLITE_FULL) is kResourceExhausted naming `what`, not INTERNAL.
+void ExecWrite(SQLite::Statement& q, const char* what) {
+    try {
+        q.exec();
+    } catch (const SQLite::Exception& e) {
+        if (e.getErrorCode() == SQLITE_FULL)
+            throw Error(ErrorCode::kResourceExhausted, std::string("database: ") + what + ": " + e.what());
+        throw;
+    }
 }
 
 void BindRecord(SQLite::Statement& q, int index, const std::string& blob) {
@@ -100,7 +112,7 @@ void SqliteStore::PutCloud(const v1::Cloud& cloud) {
     q.bind(1, cloud.id());
     BindRecord(q, 2, blob);
     q.bind(3, static_cast<std::int64_t>(NowUnixMs()));
-    q.exec();
+    ExecWrite(q, "recording a cloud");
 }
 
 bool SqliteStore::DeleteCloudRecord(const std::string& id) {
@@ -130,7 +142,7 @@ void SqliteStore::AddCloudOwner(const std::string& tenant, const std::string& id
                         "INSERT OR IGNORE INTO cloud_owners (tenant, cloud_id) VALUES (?, ?)");
     q.bind(1, tenant);
     q.bind(2, id);
-    q.exec();
+    ExecWrite(q, "recording an owner");
 }
 
 bool SqliteStore::RemoveCloudOwner(const std::string& tenant, const std::string& id,
@@ -165,7 +177,7 @@ void SqliteStore::PutJob(const v1::Job& job, const std::string& key) {
     q.bind(4, static_cast<std::int64_t>(job.created_unix_ms()));
     BindRecord(q, 5, blob);
     q.bind(6, job.tenant());
-    q.exec();
+    ExecWrite(q, "recording a job");
 }
 
 std::optional<v1::Job> SqliteStore::FindJob(const std::string& id) const {
