@@ -68,7 +68,7 @@ std::vector<std::string> LeftoverTemps(const fs::path& dir) {
 }
 
 class DiskTest : public ::testing::Test {
-protected:
+  protected:
     void SetUp() override {
         dir_ = fs::temp_directory_path() /
                ("surfel-disk-" + std::to_string(::getpid()) + "-" +
@@ -97,7 +97,8 @@ protected:
         fs::create_directories(mnt_);
         const std::string opts = "size=" + std::to_string(bytes);
         if (::mount("tmpfs", mnt_.c_str(), "tmpfs", 0, opts.c_str()) != 0) {
-            *why = std::string("mount -t tmpfs -o ") + opts + " " + mnt_ + ": " + std::strerror(errno);
+            *why =
+                std::string("mount -t tmpfs -o ") + opts + " " + mnt_ + ": " + std::strerror(errno);
             return false;
         }
         mounted_ = true;
@@ -159,7 +160,7 @@ TEST_F(DiskTest, QuotaEvictsLeastRecentlyUsedFirstAndSaysSoAcrossARestart) {
               std::string::npos)
         << gone_r1.error_message();
     EXPECT_EQ(c.GetJob(j1).state(), v1::SUCCEEDED);  // the record stays; only the bytes went
-    const auto watched = c.Watch(j1, true, false);  // Watch with the result says it too
+    const auto watched = c.Watch(j1, true, false);   // Watch with the result says it too
     EXPECT_EQ(watched.status_code, grpc::StatusCode::NOT_FOUND);
     EXPECT_NE(watched.status_message.find("result of job " + j1 + " was evicted at "),
               std::string::npos)
@@ -191,10 +192,12 @@ TEST_F(DiskTest, DeleteCloudOfACloudInUseIsRefusedNamingTheJob) {
     ServiceClient c(server.target());
     const std::string a = c.UploadFile(Cloud("a.ply", 60000, 1)).id();
     std::vector<std::string> jobs;
-    for (int target = 1000; target < 1008; ++target) jobs.push_back(c.Submit(Simplify(a, target)).id());
+    for (int target = 1000; target < 1008; ++target)
+        jobs.push_back(c.Submit(Simplify(a, target)).id());
     // One worker, eight jobs of ~60k points each: the last ones are still queued now.
     const grpc::Status refused = StatusOf([&] { c.DeleteCloud(a); });
-    EXPECT_EQ(refused.error_code(), grpc::StatusCode::FAILED_PRECONDITION) << refused.error_message();
+    EXPECT_EQ(refused.error_code(), grpc::StatusCode::FAILED_PRECONDITION)
+        << refused.error_message();
     bool names_one = false;
     for (const std::string& j : jobs)
         names_one |= refused.error_message().find("input of job " + j + " (") != std::string::npos;
@@ -280,7 +283,8 @@ TEST_F(DiskTest, UploadBytesInFlightAreCappedAndTheHeldBytesKeptForAResume) {
     ServiceClient c(server.target());
     const std::string sphere = Cloud("s.ply", 4000, 1);
     // One call holds 200 KB received and not stored (no finish_write).
-    auto stub = v1::Surfel::NewStub(grpc::CreateChannel(server.target(), grpc::InsecureChannelCredentials()));
+    auto stub = v1::Surfel::NewStub(
+        grpc::CreateChannel(server.target(), grpc::InsecureChannelCredentials()));
     grpc::ClientContext ctx;
     v1::Cloud response;
     auto writer = stub->Upload(&ctx, &response);

@@ -45,7 +45,8 @@ TEST(ChooseVictims, NothingWhenNothingIsNeededOrEvenAllUnpinnedAreTooFew) {
     EXPECT_TRUE(ChooseVictims(lru, {}, 0).empty());
     EXPECT_TRUE(ChooseVictims(lru, {}, 301).empty());
     EXPECT_TRUE(ChooseVictims(lru, {"clouds/b"}, 101).empty());
-    EXPECT_EQ(Keys(ChooseVictims(lru, {}, 300)), (std::vector<std::string>{"clouds/a", "clouds/b"}));
+    EXPECT_EQ(Keys(ChooseVictims(lru, {}, 300)),
+              (std::vector<std::string>{"clouds/a", "clouds/b"}));
 }
 
 TEST(Durations, ParseFormatAndTheTtlFlag) {
@@ -80,10 +81,11 @@ TEST(Durations, ParseFormatAndTheTtlFlag) {
     EXPECT_THROW(ApplyTtlFlag("carol=soon", &o), Error);
 }
 
-// ---- Retention over a real store -----------------------------------------------------------------
+// ---- Retention over a real store
+// -----------------------------------------------------------------
 
 class RetentionTest : public ::testing::Test {
-protected:
+  protected:
     void SetUp() override {
         dir_ = fs::temp_directory_path() /
                ("surfel-retention-" + std::to_string(::getpid()) + "-" +
@@ -249,9 +251,10 @@ TEST_F(RetentionTest, TimeToLivePerTenantEndsResultsAndOwnershipsNotNeededClouds
     o.tenant_ttl_ms["keeper"] = 0;     // keeps forever
     o.tenant_ttl_ms["short"] = 1'000;  // one second
     std::vector<std::string> events;
-    Retention r(*store_, o, [&](const std::string& kind, const std::string& cause, std::uint64_t n) {
-        events.push_back(kind + "/" + cause + "/" + std::to_string(n));
-    });
+    Retention r(*store_, o,
+                [&](const std::string& kind, const std::string& cause, std::uint64_t n) {
+                    events.push_back(kind + "/" + cause + "/" + std::to_string(n));
+                });
     r.Load();
     const std::int64_t now = 100'000;
     // Shared by "short" (expired at 5 s unused) and "keeper": only short's ownership ends.

@@ -19,30 +19,36 @@ namespace fs = std::filesystem;
 
 std::int64_t ParseDurationMs(const std::string& text, const std::string& what) {
     const auto bad = [&] {
-        return Error(ErrorCode::kInvalidArgument,
-                     what + ": '" + text + "' is not a duration (e.g. 90s, 15m, 12h, 7d; 0 = none)");
+        return Error(
+            ErrorCode::kInvalidArgument,
+            what + ": '" + text + "' is not a duration (e.g. 90s, 15m, 12h, 7d; 0 = none)");
     };
     if (text == "0") return 0;
     std::size_t digits = 0;
-    while (digits < text.size() && std::isdigit(static_cast<unsigned char>(text[digits])))
-        ++digits;
+    while (digits < text.size() && std::isdigit(static_cast<unsigned char>(text[digits]))) ++digits;
     if (digits == 0 || digits > 12) throw bad();
     const std::int64_t n = std::stoll(text.substr(0, digits));
     const std::string unit = text.substr(digits);
     std::int64_t scale = 0;
-    if (unit == "ms") scale = 1;
-    else if (unit == "s") scale = 1000;
-    else if (unit == "m") scale = 60'000;
-    else if (unit == "h") scale = 3'600'000;
-    else if (unit == "d") scale = 86'400'000;
-    else throw bad();
+    if (unit == "ms")
+        scale = 1;
+    else if (unit == "s")
+        scale = 1000;
+    else if (unit == "m")
+        scale = 60'000;
+    else if (unit == "h")
+        scale = 3'600'000;
+    else if (unit == "d")
+        scale = 86'400'000;
+    else
+        throw bad();
     return n * scale;
 }
 
 std::string FormatDurationMs(std::int64_t ms) {
     if (ms == 0) return "0";
-    for (const auto& [unit, scale] : {std::pair{"d", 86'400'000LL}, {"h", 3'600'000LL},
-                                      {"m", 60'000LL}, {"s", 1000LL}})
+    for (const auto& [unit, scale] :
+         {std::pair{"d", 86'400'000LL}, {"h", 3'600'000LL}, {"m", 60'000LL}, {"s", 1000LL}})
         if (ms % scale == 0) return std::to_string(ms / scale) + unit;
     return std::to_string(ms) + "ms";
 }
@@ -189,13 +195,15 @@ void Retention::Reserve(std::uint64_t bytes, const std::string& what, std::uint6
             }
         const std::vector<BlobUsage> victims = ChooseVictims(lru, pinned, needed);
         if (victims.empty()) {
-            throw Error(
-                ErrorCode::kResourceExhausted,
-                what + ": " + std::to_string(bytes) + " more bytes do not fit under --max-disk-gb " +
-                    Gb(max) + ": " + Gb(stored_) + " in stored blobs (" + Gb(pinned_bytes) +
-                    " of them clouds that queued or running jobs need, which are never evicted) and " +
-                    Gb(reserved_) + " in uploads in progress and results being written; retry "
-                    "after jobs finish or delete clouds");
+            throw Error(ErrorCode::kResourceExhausted,
+                        what + ": " + std::to_string(bytes) +
+                            " more bytes do not fit under --max-disk-gb " + Gb(max) + ": " +
+                            Gb(stored_) + " in stored blobs (" + Gb(pinned_bytes) +
+                            " of them clouds that queued or running jobs need, which are never "
+                            "evicted) and " +
+                            Gb(reserved_) +
+                            " in uploads in progress and results being written; retry "
+                            "after jobs finish or delete clouds");
         }
         const std::string reason =
             "least recently used, evicted to make room under --max-disk-gb " + Gb(max);

@@ -77,7 +77,7 @@ using EvictionHook =
 
 /// The quota and retention of one process's blobs (see the file comment).
 class Retention {
-public:
+  public:
     Retention(Store& store, RetentionOptions options, EvictionHook hook = {});
 
     /// Reconciles the usage table with what the blob store holds (a blob without an entry is
@@ -122,7 +122,7 @@ public:
         return std::unique_lock<std::recursive_mutex>(mutex_);
     }
 
-private:
+  private:
     /// The time-to-live of `tenant` (0 = none).
     std::int64_t TtlOf(const std::string& tenant) const;
     /// Evicts one blob for `reason`; returns the bytes freed. Lock held.
