@@ -215,7 +215,8 @@ int main(int argc, char** argv) {
     app.add_option("--ttl", f.ttl,
                    "Time-to-live of results and cloud ownerships since their last use: DURATION for every "
                    "tenant, TENANT=DURATION for one (repeat the flag); 90s, 15m, 12h, 7d; 0 = keep")
-        ->expected(1);
+        ->allow_extra_args(false)
+        ->multi_option_policy(CLI::MultiOptionPolicy::TakeAll);
     app.add_option("--retention-sweep-s", f.retention_sweep_s, "Seconds between time-to-live sweeps")
         ->default_val(60)
         ->check(CLI::Range(0.05, 86400.0));

@@ -3,6 +3,7 @@
 //    restart; an evicted blob answers NOT_FOUND saying "evicted"; an identical submission runs
 //    again when its result was evicted; an upload larger than the quota is refused, evicting
 //    nothing;
+//  - --ttl: an unused cloud and result expire, saying so;
 //  - DeleteCloud of a cloud a queued or running job needs: FAILED_PRECONDITION naming the job;
 //  - a real full filesystem (a 1 MiB tmpfs): an upload that does not fit and a result write
 //    that hits ENOSPC are RESOURCE_EXHAUSTED, no half-written file stays, the server keeps
@@ -184,6 +185,32 @@ TEST_F(DiskTest, QuotaEvictsLeastRecentlyUsedFirstAndSaysSoAcrossARestart) {
     EXPECT_EQ(c.GetCloud(a).id(), a);
     EXPECT_EQ(c.GetCloud(cc).id(), cc);
     EXPECT_EQ(LeftoverTemps(data), std::vector<std::string>{});
+}
+
+TEST_F(DiskTest, TimeToLiveEndsUnusedResultsAndClouds) {
+    const std::string data = (dir_ / "data").string();
+    // The default tenant "" gets 1 s; the flag repeats (another tenant's entry).
+    testing::ServerProcess server(
+        data, {"--ttl", "1s", "--ttl", "nobody=7d", "--retention-sweep-s", "0.2"});
+    ServiceClient c(server.target());
+    const std::string a = c.UploadFile(Cloud("a.ply", 4000, 1)).id();
+    const v1::Job job = c.Submit(Simplify(a, 300));
+    ASSERT_EQ(c.Watch(job.id(), false, false).state, v1::SUCCEEDED);
+    grpc::Status gone;
+    for (int i = 0; i < 100; ++i) {  // 1 s of TTL plus a sweep every 0.2 s; up to 10 s
+        gone = StatusOf([&] { c.GetCloud(a); });
+        if (!gone.ok()) break;
+        std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    }
+    EXPECT_EQ(gone.error_code(), grpc::StatusCode::NOT_FOUND);
+    EXPECT_NE(gone.error_message().find("time-to-live 1s of tenant ''"), std::string::npos)
+        << gone.error_message();
+    const grpc::Status result = StatusOf([&] { c.Download(job.id()); });
+    EXPECT_EQ(result.error_code(), grpc::StatusCode::NOT_FOUND);
+    EXPECT_NE(result.error_message().find("was evicted"), std::string::npos)
+        << result.error_message();
+    EXPECT_FALSE(fs::exists(fs::path(data) / "clouds" / a));
+    EXPECT_FALSE(fs::exists(fs::path(data) / "results" / job.id()));
 }
 
 TEST_F(DiskTest, DeleteCloudOfACloudInUseIsRefusedNamingTheJob) {
