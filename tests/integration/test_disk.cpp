@@ -196,16 +196,16 @@ TEST_F(DiskTest, TimeToLiveEndsUnusedResultsAndClouds) {
     const std::string a = c.UploadFile(Cloud("a.ply", 4000, 1)).id();
     const v1::Job job = c.Submit(Simplify(a, 300));
     ASSERT_EQ(c.Watch(job.id(), false, false).state, v1::SUCCEEDED);
-    grpc::Status gone;
-    for (int i = 0; i < 100; ++i) {  // 1 s of TTL plus a sweep every 0.2 s; up to 10 s
-        gone = StatusOf([&] { c.GetCloud(a); });
-        if (!gone.ok()) break;
+    // 1 s of TTL plus a sweep every 0.2 s; the result was used after the cloud (the job read
+    // the cloud first), so it may go a sweep later. Polled on disk: a download would use it.
+    const fs::path result_file = fs::path(data) / "results" / job.id();
+    for (int i = 0; i < 100 && fs::exists(result_file); ++i)
         std::this_thread::sleep_for(std::chrono::milliseconds(100));
-    }
+    const grpc::Status gone = StatusOf([&] { c.GetCloud(a); });
+    const grpc::Status result = StatusOf([&] { c.Download(job.id()); });
     EXPECT_EQ(gone.error_code(), grpc::StatusCode::NOT_FOUND);
     EXPECT_NE(gone.error_message().find("time-to-live 1s of tenant ''"), std::string::npos)
         << gone.error_message();
-    const grpc::Status result = StatusOf([&] { c.Download(job.id()); });
     EXPECT_EQ(result.error_code(), grpc::StatusCode::NOT_FOUND);
     EXPECT_NE(result.error_message().find("was evicted"), std::string::npos)
         << result.error_message();
@@ -321,13 +321,14 @@ TEST_F(DiskTest, UploadBytesInFlightAreCappedAndTheHeldBytesKeptForAResume) {
     held.set_data(std::string(200 << 10, 'x'));
     ASSERT_TRUE(writer->Write(held));
     std::int64_t committed = 0;
-    for (int i = 0; i < 300 && committed == 0; ++i) {
+    // Polled until the whole chunk is on disk (the part file's size grows during the write).
+    for (int i = 0; i < 300 && committed != (200 << 10); ++i) {
         v1::QueryUploadRequest q;
         q.set_upload_id("held-open");
         grpc::ClientContext qc;
         v1::QueryUploadResponse r;
         if (stub->QueryUpload(&qc, q, &r).ok()) committed = r.committed_size();
-        if (committed == 0) std::this_thread::sleep_for(std::chrono::milliseconds(10));
+        if (committed != (200 << 10)) std::this_thread::sleep_for(std::chrono::milliseconds(10));
     }
     ASSERT_EQ(committed, 200 << 10);
     // 200 KB + 96 KB > 256 KiB: refused, saying which limit.
