@@ -25,6 +25,32 @@ Metrics::Metrics() : registry_(std::make_shared<prometheus::Registry>()) {
     bytes_in_ = &bytes.Add({{"direction", "in"}});
     bytes_out_ = &bytes.Add({{"direction", "out"}});
     uploads_ = &prometheus::BuildCounter().Name("surfel_uploads_total").Help("Finished uploads by outcome").Register(*registry_);
+    auto& disk = prometheus::BuildGauge()
+                     .Name("surfel_disk_bytes")
+                     .Help("Blob bytes counted toward --max-disk-gb: stored blobs, reserved (upload part "
+                           "files and results being written), and the quota (0 = none)")
+                     .Register(*registry_);
+    disk_stored_ = &disk.Add({{"what", "stored"}});
+    disk_reserved_ = &disk.Add({{"what", "reserved"}});
+    disk_quota_ = &disk.Add({{"what", "quota"}});
+    upload_inflight_ = &prometheus::BuildGauge()
+                            .Name("surfel_upload_inflight_bytes")
+                            .Help("Bytes received by uploads in progress and not yet stored")
+                            .Register(*registry_)
+                            .Add({});
+    evictions_ = &prometheus::BuildCounter()
+                      .Name("surfel_evictions_total")
+                      .Help("Blobs evicted (or tenants' ownerships ended), by kind and cause (lru, ttl)")
+                      .Register(*registry_);
+    evicted_bytes_ = &prometheus::BuildCounter()
+                          .Name("surfel_evicted_bytes_total")
+                          .Help("Bytes freed by evictions, by kind and cause")
+                          .Register(*registry_);
+    for (const char* kind : {"cloud", "result"})
+        for (const char* cause : {"lru", "ttl"}) {
+            evictions_->Add({{"kind", kind}, {"cause", cause}});
+            evicted_bytes_->Add({{"kind", kind}, {"cause", cause}});
+        }
     // Every kind of the job table has its series from the start (0 until it runs), so a
     // dashboard sees a kind that never ran and a rate() has a starting point.
     for (const worker::JobKind* kind : worker::JobKinds()) running_->Add({{"type", std::string(kind->Name())}});
@@ -55,6 +81,17 @@ void Metrics::OnTransition(const v1::Job& job, v1::JobState from) {
 void Metrics::SetQueueDepth(std::size_t depth) { queue_depth_->Set(static_cast<double>(depth)); }
 void Metrics::AddBytesIn(std::uint64_t n) { bytes_in_->Increment(static_cast<double>(n)); }
 void Metrics::AddBytesOut(std::uint64_t n) { bytes_out_->Increment(static_cast<double>(n)); }
+void Metrics::SetDisk(std::uint64_t stored, std::uint64_t reserved, std::uint64_t quota,
+                      std::uint64_t upload_inflight) {
+    disk_stored_->Set(static_cast<double>(stored));
+    disk_reserved_->Set(static_cast<double>(reserved));
+    disk_quota_->Set(static_cast<double>(quota));
+    upload_inflight_->Set(static_cast<double>(upload_inflight));
+}
+void Metrics::CountEviction(const std::string& kind, const std::string& cause, std::uint64_t bytes) {
+    evictions_->Add({{"kind", kind}, {"cause", cause}}).Increment();
+    evicted_bytes_->Add({{"kind", kind}, {"cause", cause}}).Increment(static_cast<double>(bytes));
+}
 void Metrics::CountUpload(bool ok) { uploads_->Add({{"outcome", ok ? "stored" : "rejected"}}).Increment(); }
 
 }  // namespace surfel::server

@@ -28,6 +28,12 @@ public:
     void AddBytesIn(std::uint64_t n);
     void AddBytesOut(std::uint64_t n);
     void CountUpload(bool ok);
+    /// Disk retention (worker/retention.h): bytes of stored blobs, bytes reserved (upload part
+    /// files, results being written), the quota (0 = none), upload bytes in flight.
+    void SetDisk(std::uint64_t stored, std::uint64_t reserved, std::uint64_t quota,
+                 std::uint64_t upload_inflight);
+    /// One eviction: kind "cloud"/"result", cause "lru"/"ttl", bytes freed.
+    void CountEviction(const std::string& kind, const std::string& cause, std::uint64_t bytes);
 
 private:
     std::shared_ptr<prometheus::Registry> registry_;
@@ -39,6 +45,12 @@ private:
     prometheus::Counter* bytes_in_;
     prometheus::Counter* bytes_out_;
     prometheus::Family<prometheus::Counter>* uploads_;
+    prometheus::Gauge* disk_stored_;
+    prometheus::Gauge* disk_reserved_;
+    prometheus::Gauge* disk_quota_;
+    prometheus::Gauge* upload_inflight_;
+    prometheus::Family<prometheus::Counter>* evictions_;
+    prometheus::Family<prometheus::Counter>* evicted_bytes_;
 };
 
 }  // namespace surfel::server

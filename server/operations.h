@@ -7,6 +7,7 @@
 
 #include <cstdint>
 #include <mutex>
+#include <optional>
 #include <set>
 #include <string>
 #include <vector>
@@ -16,6 +17,7 @@
 #include "metrics.h"
 #include "surfel/v1/surfel.pb.h"
 #include "surfel/worker/job_manager.h"
+#include "surfel/worker/retention.h"
 #include "surfel/worker/store.h"
 
 namespace surfel::server {
@@ -27,6 +29,10 @@ struct ServiceLimits {
     std::size_t max_chunk_bytes = 1 << 20;  ///< One UploadRequest's data at most.
     std::size_t download_chunk_bytes = 256 << 10;  ///< Result chunks in Watch, Download and HTTP.
     std::size_t max_uploads = 64;  ///< Upload calls in progress at once; more -> RESOURCE_EXHAUSTED.
+    /// Bytes received by upload calls in progress and not yet stored as clouds (their part files,
+    /// which Finish reads whole into memory to parse); a chunk past it -> RESOURCE_EXHAUSTED, the
+    /// committed bytes kept for a resume. 0 = no limit.
+    std::uint64_t max_upload_inflight_bytes = 4ull << 30;
 };
 
 /// A succeeded job's result file.
@@ -53,7 +59,9 @@ class Operations {
     std::int64_t CommittedUploadBytes(const Caller& caller, const std::string& upload_id) const;
     /// kNotFound when unknown (or not the caller's).
     v1::Cloud GetCloud(const Caller& caller, const std::string& cloud_id) const;
-    /// kNotFound when unknown. A scoped caller drops its own ownership; the bytes go with the
+    /// kNotFound when unknown (saying "evicted" when retention evicted it);
+    /// kFailedPrecondition naming the job when a queued or running job of the caller needs the
+    /// cloud (docs/retention.md). A scoped caller drops its own ownership; the bytes go with the
     /// last owner.
     void DeleteCloud(const Caller& caller, const std::string& cloud_id);
 
@@ -68,6 +76,9 @@ class Operations {
                                   v1::JobState state) const;
     /// kNotFound for an unknown job or a vanished file, kFailedPrecondition unless SUCCEEDED.
     ResultFile Result(const Caller& caller, const std::string& job_id) const;
+    /// Why a SUCCEEDED job's result blob is missing, for the caller: "result of job <id> was
+    /// evicted at …" when retention evicted it, else "result of job <id> is gone".
+    std::string ResultGoneMessage(const Caller& caller, const std::string& job_id) const;
     /// The name of the part file (and of the claim) of a caller's upload id: the id itself for
     /// an unscoped caller, else prefixed by a digest of the tenant (ids are per tenant).
     static std::string ScopedUploadId(const Caller& caller, const std::string& upload_id);
@@ -78,6 +89,16 @@ class Operations {
     /// Error(kResourceExhausted) when limits().max_uploads calls hold one already.
     bool ClaimUpload(const std::string& id);
     void ReleaseUpload(const std::string& id);
+    /// Counts `bytes` of upload `id` as in flight; Error(kResourceExhausted) when that would pass
+    /// limits().max_upload_inflight_bytes (nothing counted then).
+    void ReserveInflight(std::uint64_t bytes, const std::string& id);
+    void ReleaseInflight(std::uint64_t bytes);
+    /// Bytes of uploads in flight now.
+    std::uint64_t InflightBytes() const;
+
+    /// Disk quota and retention (worker/retention.h); null when not set.
+    worker::Retention* retention() const { return retention_; }
+    void SetRetention(worker::Retention* retention) { retention_ = retention; }
 
     worker::Store& store() { return store_; }
     worker::JobManager& jobs() { return jobs_; }
@@ -99,8 +120,13 @@ class Operations {
     ServiceLimits limits_;
     Authenticator auth_;
     UrlSigner url_signer_;
-    std::mutex uploads_mutex_;
+    mutable std::mutex uploads_mutex_;
     std::set<std::string> active_uploads_;
+    std::uint64_t inflight_bytes_ = 0;  ///< under uploads_mutex_
+    worker::Retention* retention_ = nullptr;
+    /// The "evicted" message of a blob the caller would see, if it was evicted.
+    std::optional<std::string> Evicted(const Caller& caller, const std::string& key,
+                                       const std::string& what) const;
 };
 
 }  // namespace surfel::server

@@ -27,6 +27,7 @@
 #include "surfel/io/image.h"
 #include "surfel/worker/job_kind.h"
 #include "surfel/worker/memory.h"
+#include "surfel/worker/retention.h"
 #include "surfel/worker/store_postgres.h"
 
 namespace {
@@ -97,6 +98,10 @@ struct Flags {
     double max_job_memory_mb = -1;  // -1: 3/4 of the memory available at start
     int job_nice = 10;
     std::size_t max_uploads = 64;
+    double max_upload_inflight_mb = 4096;
+    double max_disk_gb = 0;
+    std::vector<std::string> ttl;
+    double retention_sweep_s = 60;
     std::string metrics;
     std::string port_file;
     double grace_s = 10;
@@ -208,6 +213,26 @@ int main(int argc, char** argv) {
                    "(HTTP 429); each holds at most one chunk and, while parsed, its file and cloud")
         ->default_val(64)
         ->check(CLI::Range(1, 100000));
+    app.add_option("--max-upload-inflight-mb", f.max_upload_inflight_mb,
+                   "MiB of uploads received and not yet stored (part files of upload calls in progress, each "
+                   "read whole to parse) before a chunk answers RESOURCE_EXHAUSTED (the bytes are kept: resume "
+                   "later); 0 = no limit")
+        ->default_val(4096)
+        ->check(CLI::NonNegativeNumber);
+    app.add_option("--max-disk-gb", f.max_disk_gb,
+                   "Quota of blob bytes in GB (10^9): clouds, results and upload part files. Before a write "
+                   "would pass it, least recently used results and clouds are evicted, never a cloud a "
+                   "queued or running job needs; else RESOURCE_EXHAUSTED (docs/retention.md). 0 = none")
+        ->default_val(0)
+        ->check(CLI::NonNegativeNumber);
+    app.add_option("--ttl", f.ttl,
+                   "Time-to-live of results and cloud ownerships since their last use: DURATION for every "
+                   "tenant, TENANT=DURATION for one (repeat the flag); 90s, 15m, 12h, 7d; 0 = keep")
+        ->allow_extra_args(false)
+        ->multi_option_policy(CLI::MultiOptionPolicy::TakeAll);
+    app.add_option("--retention-sweep-s", f.retention_sweep_s, "Seconds between time-to-live sweeps")
+        ->default_val(60)
+        ->check(CLI::Range(0.05, 86400.0));
     app.add_option("--metrics", f.metrics, "Serve Prometheus metrics at http://ADDR/metrics, e.g. 127.0.0.1:9464");
     app.add_option("--port-file", f.port_file, "Write the bound port to this file once serving (for scripts)");
     app.add_option("--grace", f.grace_s, "Seconds running jobs get to finish on SIGTERM before they are requeued")
@@ -288,7 +313,16 @@ int main(int argc, char** argv) {
         std::unique_ptr<worker::Store> store_ptr = worker::OpenStore(
             f.store.empty() ? "sqlite:" + f.data_dir + "/surfel.db" : f.store, blob_dir, f.blobs);
         worker::Store& store = *store_ptr;
+        // Disk quota and retention (docs/retention.md): before the job manager, which reserves
+        // results there.
+        worker::RetentionOptions ro;
+        ro.max_disk_bytes = static_cast<std::uint64_t>(f.max_disk_gb * 1e9);
+        for (const std::string& t : f.ttl) worker::ApplyTtlFlag(t, &ro);
+        worker::Retention retention(store, ro, [&](const std::string& kind, const std::string& cause,
+                                                   std::uint64_t bytes) { metrics.CountEviction(kind, cause, bytes); });
+        retention.Load();
         worker::ManagerOptions mo;
+        mo.retention = &retention;
         mo.workers = f.workers > 0 ? static_cast<std::size_t>(f.workers) : 0;
         mo.run_jobs = f.workers != 0;
         mo.lease_ms = static_cast<std::int64_t>(f.lease_s * 1000);
@@ -306,10 +340,15 @@ int main(int argc, char** argv) {
         limits.max_upload_bytes = static_cast<std::uint64_t>(f.max_upload_mb * 1024 * 1024);
         limits.max_points = f.max_points;
         limits.max_uploads = f.max_uploads;
+        limits.max_upload_inflight_bytes = static_cast<std::uint64_t>(f.max_upload_inflight_mb * 1024 * 1024);
+        if (limits.max_upload_inflight_bytes != 0 && limits.max_upload_inflight_bytes < limits.max_upload_bytes)
+            spdlog::warn("--max-upload-inflight-mb {} is below --max-upload-mb {}: uploads larger than it are "
+                         "always refused", f.max_upload_inflight_mb, f.max_upload_mb);
         // Declared before the service and the server: it outlives both, and runs its queue dry
         // while server->Shutdown waits for the upload calls its tasks finish.
         server::Executor ingest(f.ingest_threads, f.ingest_queue);
         server::Operations ops(store, jobs, metrics, ingest, limits);
+        ops.SetRetention(&retention);
         if (!f.auth_tokens.empty()) {
             server::TokenSet tokens = server::TokenSet::Load(f.auth_tokens);
             spdlog::info("auth: {} tenants from {}", tokens.size(), f.auth_tokens);
@@ -380,12 +419,24 @@ int main(int argc, char** argv) {
         std::fflush(stdout);
         if (!f.port_file.empty()) WritePortFile(f.port_file, bound_port);
 
-        // Queue depth gauge, refreshed while serving.
+        // Queue depth and disk gauges, refreshed while serving; the time-to-live sweep.
         std::atomic<bool> done{false};
         std::thread gauge([&] {
+            const auto sweep_every = std::chrono::milliseconds(static_cast<std::int64_t>(f.retention_sweep_s * 1000));
+            auto next_sweep = std::chrono::steady_clock::now();
             while (!done) {
                 metrics.SetQueueDepth(jobs.QueueDepth());
-                std::this_thread::sleep_for(std::chrono::milliseconds(500));
+                if (std::chrono::steady_clock::now() >= next_sweep) {
+                    try {
+                        retention.Sweep(worker::NowUnixMs());
+                    } catch (const std::exception& e) {
+                        spdlog::warn("retention sweep: {}", e.what());
+                    }
+                    next_sweep = std::chrono::steady_clock::now() + sweep_every;
+                }
+                metrics.SetDisk(retention.stored_bytes(), retention.reserved_bytes(), retention.max_bytes(),
+                                ops.InflightBytes());
+                std::this_thread::sleep_for(std::min(std::chrono::milliseconds(500), sweep_every));
             }
         });
 

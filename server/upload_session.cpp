@@ -17,7 +17,9 @@
 
 #include "surfel/base/error.h"
 #include "surfel/io/cloud_io.h"
+#include "surfel/worker/blob_store.h"
 #include "surfel/worker/job_kind.h"
+#include "surfel/worker/retention.h"
 
 namespace surfel::server {
 namespace fs = std::filesystem;
@@ -100,12 +102,26 @@ UploadSession::UploadSession(Operations& ops, const Caller& caller, std::string 
     hashed_ = committed_ == 0;
     writeback_from_ = committed_;
     adopt_ = ops_.store().blobs().AdoptsFiles();
-    fd_ = ::open(path_.c_str(), O_WRONLY | O_CREAT | O_APPEND | O_CLOEXEC, 0644);
-    if (fd_ < 0) throw Error(ErrorCode::kInternal, "cannot open " + path_ + ": " + std::strerror(errno));
+    try {
+        fd_ = ::open(path_.c_str(), O_WRONLY | O_CREAT | O_APPEND | O_CLOEXEC, 0644);
+        if (fd_ < 0) {
+            const int err = errno;
+            throw Error(worker::IsDiskFull(err) ? ErrorCode::kResourceExhausted : ErrorCode::kInternal,
+                        "cannot open " + path_ + ": " + std::strerror(err));
+        }
+        // A resumed upload's committed bytes are in flight again until stored.
+        ops_.ReserveInflight(committed_, id_);
+        inflight_ = committed_;
+    } catch (...) {  // the destructor does not run for a constructor that throws
+        CloseFile();
+        ops_.ReleaseUpload(Operations::ScopedUploadId(caller_, id_));
+        throw;
+    }
 }
 
 UploadSession::~UploadSession() {
     CloseFile();
+    ops_.ReleaseInflight(inflight_);
     if (claimed_) ops_.ReleaseUpload(Operations::ScopedUploadId(caller_, id_));
 }
 
@@ -149,12 +165,45 @@ void UploadSession::Append(std::string_view data) {
     SURFEL_CHECK(hashed_, "Append before HashCommitted on upload " << id_);
     CheckFits(data.size());
     SURFEL_CHECK(fd_ >= 0, "Append after Finish or Discard on upload " << id_);
-    for (std::size_t at = 0; at < data.size();) {
+    if (data.empty()) return;
+    ops_.ReserveInflight(data.size(), id_);  // over it: kept for a resume
+    inflight_ += data.size();
+    worker::Retention* retention = ops_.retention();
+    if (retention) {
+        try {
+            retention->Reserve(data.size(), "upload " + id_, committed_ + data.size());
+        } catch (const Error& e) {
+            const std::uint64_t had = committed_;
+            Discard();
+            throw Error(e.code(), std::string(e.what()) + "; the upload's " + std::to_string(had) +
+                                      " committed bytes were discarded: upload it again");
+        }
+    }
+    std::size_t at = 0;
+    int err = 0;
+    while (at < data.size()) {
         const ssize_t n = ::write(fd_, data.data() + at, data.size() - at);
         if (n < 0 && errno == EINTR) continue;
-        if (n < 0)
-            throw Error(ErrorCode::kInternal, "writing " + path_ + ": " + std::strerror(errno));
+        if (n < 0) {
+            err = errno;
+            break;
+        }
         at += static_cast<std::size_t>(n);
+    }
+    if (err != 0) {
+        // Nothing of this chunk stays; on a full disk the whole part file goes, and its space.
+        if (::ftruncate(fd_, static_cast<off_t>(committed_)) != 0) {
+        }
+        if (retention) retention->Release(data.size());
+        const std::uint64_t had = committed_;
+        const bool full = worker::IsDiskFull(err);
+        if (full) Discard();
+        throw Error(full ? ErrorCode::kResourceExhausted : ErrorCode::kInternal,
+                    "upload " + id_ + ": writing " + path_ + ": " + std::strerror(err) +
+                        (full ? "; the upload's " + std::to_string(had) +
+                                    " committed bytes were discarded to free the space: upload "
+                                    "it again"
+                              : std::string()));
     }
     hash_.Update(data);
     committed_ += data.size();
@@ -173,6 +222,10 @@ void UploadSession::Append(std::string_view data) {
 v1::Cloud UploadSession::Finish() {
     SURFEL_CHECK(hashed_, "Finish before HashCommitted on upload " << id_);
     const std::string id = hash_.FinishHex();
+    worker::Retention* retention = ops_.retention();
+    // No eviction of the cloud between finding it here and recording this owner.
+    std::unique_lock<std::recursive_mutex> hold;
+    if (retention) hold = retention->Lock();
     // Deduplication answers only from the caller's own clouds: a tenant learns nothing about
     // another's files (docs/security.md). Unscoped callers (no auth) see every cloud.
     const bool own = !caller_.scoped || ops_.store().CloudOwned(caller_.tenant, id);
@@ -184,9 +237,11 @@ v1::Cloud UploadSession::Finish() {
         existing->set_deduplicated(true);
         spdlog::info("upload {}: {} bytes, already stored as cloud {}", id_, size, id);
         ops_.metrics().CountUpload(true);
+        if (retention) retention->Touch(worker::CloudBlobKey(id));
         return *existing;
     }
     const std::uint64_t size = committed_;
+    if (hold) hold.unlock();  // parsing takes long; evictions may run meanwhile
     CloudFileSummary cloud;
     int sync_error = 0;
     try {
@@ -211,15 +266,20 @@ v1::Cloud UploadSession::Finish() {
     if (sync_error != 0) {
         Discard();
         ops_.metrics().CountUpload(false);
-        throw Error(ErrorCode::kInternal, "fsync " + path_ + ": " + std::strerror(sync_error));
+        throw Error(worker::IsDiskFull(sync_error) ? ErrorCode::kResourceExhausted : ErrorCode::kInternal,
+                    "fsync " + path_ + ": " + std::strerror(sync_error));
     }
     // Durable before it is recorded and acknowledged: dir backend fsync + rename + fsync of the
     // directory; large objects one committed transaction (docs/durability.md).
+    if (retention) hold.lock();
     try {
-        if (caller_.scoped && ops_.store().blobs().Size(worker::CloudBlobKey(id)))
+        if (caller_.scoped && ops_.store().blobs().Size(worker::CloudBlobKey(id))) {
             Discard();  // another tenant's identical bytes are already stored: keep one copy
-        else
+            if (retention) retention->Touch(worker::CloudBlobKey(id));
+        } else {
             ops_.store().blobs().PutFile(worker::CloudBlobKey(id), path_, id);
+            if (retention) retention->Stored(worker::CloudBlobKey(id), committed_, committed_);
+        }
     } catch (...) {
         Discard();
         ops_.metrics().CountUpload(false);
@@ -244,7 +304,9 @@ v1::Cloud UploadSession::Finish() {
 void UploadSession::Discard() {
     CloseFile();
     std::error_code ec;
-    fs::remove(path_, ec);
+    const bool removed = fs::remove(path_, ec);
+    // The part file's bytes were counted by retention (Load, or chunk by chunk).
+    if (removed && ops_.retention()) ops_.retention()->Release(committed_);
     committed_ = 0;
 }
 

@@ -50,7 +50,11 @@ class UploadSession {
     void CheckFits(std::uint64_t more);
     /// Reads and hashes the committed bytes of a resumed upload (slow: up to max_upload_bytes).
     void HashCommitted();
-    /// Appends and flushes `data` (after CheckFits). Needs hashed().
+    /// Appends `data` to the part file (after CheckFits). Needs hashed(). kResourceExhausted:
+    /// - past limits().max_upload_inflight_bytes: the committed bytes are kept (resume later);
+    /// - past the disk quota when eviction cannot make room (Retention::Reserve), or the disk is
+    ///   full (ENOSPC, EDQUOT): the part file is removed, freeing its space (upload again).
+    /// A chunk is never half in the part file: a short write is truncated away.
     void Append(std::string_view data);
     /// The whole file is here: a cloud the caller stored before is returned at once
     /// (deduplicated); one only other tenants stored is parsed as if new (the same answer and
@@ -71,6 +75,7 @@ class UploadSession {
     bool adopt_ = false;   // the blob store renames the part file into place (early writeback pays)
     std::uint64_t committed_ = 0;
     std::uint64_t writeback_from_ = 0;  // bytes before this offset have had writeback started
+    std::uint64_t inflight_ = 0;        // bytes this session counts in Operations' in-flight total
     int fd_ = -1;                       // the part file, open for appending
     worker::Sha256 hash_;
 

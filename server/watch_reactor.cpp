@@ -28,7 +28,7 @@ using worker::CurrentExceptionStatus;
 class WatchReactor final : public grpc::ServerWriteReactor<v1::JobEvent> {
 public:
     WatchReactor(SurfelService& service, const Caller& caller, const v1::WatchRequest& request)
-        : service_(service), request_(request) {
+        : service_(service), caller_(caller), request_(request) {
         sink_ = std::make_shared<Sink>();
         sink_->reactor = this;
         std::weak_ptr<Sink> weak = sink_;
@@ -119,7 +119,12 @@ private:
                 if (!open) {
                     pending_.back().clear_finished();
                     pending_.back().mutable_failed()->set_code(grpc::StatusCode::NOT_FOUND);
-                    pending_.back().mutable_failed()->set_message("result of job " + e.job_id() + " is gone");
+                    std::string why = "result of job " + e.job_id() + " is gone";
+                    try {
+                        why = service_.ops().ResultGoneMessage(caller_, e.job_id());  // "evicted …"
+                    } catch (const std::exception&) {  // the store is unreachable: the plain words
+                    }
+                    pending_.back().mutable_failed()->set_message(why);
                 } else {
                     streaming_result_ = true;
                 }
@@ -167,6 +172,7 @@ private:
     }
 
     SurfelService& service_;
+    Caller caller_;
     v1::WatchRequest request_;
     std::shared_ptr<Sink> sink_;
     std::uint64_t token_ = 0;

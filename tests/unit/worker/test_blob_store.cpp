@@ -141,6 +141,16 @@ TEST_P(BlobStoreTest, PutBytesReadsBackVerifiedAndRemoves) {
     }
 }
 
+TEST_P(BlobStoreTest, ListsEveryBlobWithItsSizeSortedByKey) {
+    EXPECT_TRUE(blobs_->List().empty());
+    blobs_->PutBytes(ResultBlobKey("j1"), Pattern(10), Sha256Hex(Pattern(10)));
+    blobs_->PutBytes(CloudBlobKey("c1"), Pattern(20), Sha256Hex(Pattern(20)));
+    using Entry = std::pair<std::string, std::uint64_t>;
+    EXPECT_EQ(blobs_->List(), (std::vector<Entry>{{"clouds/c1", 20}, {"results/j1", 10}}));
+    blobs_->Remove(CloudBlobKey("c1"));
+    EXPECT_EQ(blobs_->List(), (std::vector<Entry>{{"results/j1", 10}}));
+}
+
 TEST_P(BlobStoreTest, PutFileConsumesTheFileAndReplacesAnOldBlob) {
     const std::string a = Pattern(2100), b = Pattern(10);
     fs::create_directories(dir_ / "uploads");

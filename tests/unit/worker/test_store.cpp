@@ -251,6 +251,48 @@ TEST_P(StoreTest, TenantsOwnCloudsAndListTheirJobs) {
     EXPECT_EQ(store_->ListJobs(10, v1::JOB_STATE_UNSPECIFIED).size(), 2u);
 }
 
+// ---- disk retention (migration 6): usage, tombstones, owners; the policy is test_retention.cpp
+
+TEST_P(StoreTest, BlobUsageInLruOrderTombstonesPerTenantAndOwners) {
+    store_->PutBlobUsage("clouds/b", 200, 20);
+    store_->PutBlobUsage("results/j", 50, 10);
+    store_->PutBlobUsage("clouds/a", 100, 20);
+    store_->TouchBlobUsage("results/j", 30);
+    store_->TouchBlobUsage("clouds/none", 40);  // no entry: nothing
+    std::vector<BlobUsage> u = store_->ListBlobUsage();
+    ASSERT_EQ(u.size(), 3u);
+    EXPECT_EQ(u[0].key, "clouds/a");  // ties by key
+    EXPECT_EQ(u[0].size, 100u);
+    EXPECT_EQ(u[1].key, "clouds/b");
+    EXPECT_EQ(u[2].key, "results/j");
+    EXPECT_EQ(u[2].last_used_ms, 30);
+    store_->PutBlobUsage("clouds/b", 250, 5);  // replaced
+    u = store_->ListBlobUsage();
+    EXPECT_EQ(u[0].key, "clouds/b");
+    EXPECT_EQ(u[0].size, 250u);
+    EXPECT_TRUE(store_->RemoveBlobUsage("clouds/b"));
+    EXPECT_FALSE(store_->RemoveBlobUsage("clouds/b"));
+    EXPECT_EQ(store_->ListBlobUsage().size(), 2u);
+
+    const std::string alice = "alice", bob = "bob";
+    store_->PutEviction("clouds/a", "alice", Eviction{"lru", 100});
+    store_->PutEviction("clouds/a", "alice", Eviction{"ttl", 200});  // replaced
+    EXPECT_EQ(store_->FindEviction("clouds/a", &alice)->reason, "ttl");
+    EXPECT_EQ(store_->FindEviction("clouds/a", &alice)->evicted_ms, 200);
+    EXPECT_FALSE(store_->FindEviction("clouds/a", &bob));
+    EXPECT_EQ(store_->FindEviction("clouds/a", nullptr)->reason, "ttl");
+    store_->PutBlobUsage("clouds/a", 100, 300);  // stored again: the tombstones go
+    EXPECT_FALSE(store_->FindEviction("clouds/a", nullptr));
+
+    v1::Cloud c;
+    c.set_id("x");
+    store_->PutCloud(c);
+    store_->AddCloudOwner("bob", "x");
+    store_->AddCloudOwner("alice", "x");
+    EXPECT_EQ(store_->CloudOwners("x"), (std::vector<std::string>{"alice", "bob"}));
+    EXPECT_TRUE(store_->CloudOwners("y").empty());
+}
+
 // ---- the queue
 
 TEST_P(StoreTest, ClaimTakesTheOldestQueuedJobUnderALease) {

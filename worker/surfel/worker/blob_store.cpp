@@ -6,6 +6,7 @@
 #include <unistd.h>
 
 #include <cerrno>
+#include <algorithm>
 #include <cstring>
 #include <filesystem>
 #include <random>
@@ -84,6 +85,14 @@ std::string ReadVerified(const BlobStore& store, const std::string& key,
 
 // ---- fsync
 
+bool IsDiskFull(int err) { return err == ENOSPC || err == EDQUOT; }
+
+namespace {
+ErrorCode WriteErrorCode(int err) {
+    return IsDiskFull(err) ? ErrorCode::kResourceExhausted : ErrorCode::kInternal;
+}
+}  // namespace
+
 void SyncFile(const std::string& path) {
     const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
     if (fd < 0)
@@ -91,7 +100,7 @@ void SyncFile(const std::string& path) {
     const int rc = ::fsync(fd);
     const int err = errno;
     ::close(fd);
-    if (rc != 0) throw Error(ErrorCode::kInternal, "fsync " + path + ": " + std::strerror(err));
+    if (rc != 0) throw Error(WriteErrorCode(err), "fsync " + path + ": " + std::strerror(err));
 }
 
 void SyncDirectory(const std::string& dir) {
@@ -162,7 +171,8 @@ void DirBlobStore::PutFile(const std::string& key, const std::string& path,
     SyncFile(path);
     std::error_code ec;
     fs::rename(path, target, ec);
-    if (ec) throw Error(ErrorCode::kInternal, "storing blob " + key + ": " + ec.message());
+    if (ec)
+        throw Error(WriteErrorCode(ec.value()), "storing blob " + key + ": " + ec.message());
     SyncDirectory(fs::path(target).parent_path().string());
 }
 
@@ -170,9 +180,11 @@ void DirBlobStore::PutBytes(const std::string& key, std::string_view bytes,
                             const std::string& sha256) {
     const std::string tmp = PathOf(key) + TempSuffix();
     const int fd = ::open(tmp.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
-    if (fd < 0)
-        throw Error(ErrorCode::kInternal, "storing blob " + key + ": " + tmp + ": " +
-                                              std::strerror(errno));
+    if (fd < 0) {
+        const int err = errno;
+        throw Error(WriteErrorCode(err),
+                    "storing blob " + key + ": " + tmp + ": " + std::strerror(err));
+    }
     std::size_t at = 0;
     int err = 0;
     while (at < bytes.size()) {
@@ -187,11 +199,20 @@ void DirBlobStore::PutBytes(const std::string& key, std::string_view bytes,
     if (err == 0 && ::fsync(fd) != 0) err = errno;
     ::close(fd);
     if (err != 0) {
+        // The temp name is all a half-written blob ever had; it goes, and with it the space.
         std::error_code ec;
         fs::remove(tmp, ec);
-        throw Error(ErrorCode::kInternal, "storing blob " + key + ": " + std::strerror(err));
+        throw Error(WriteErrorCode(err), "storing blob " + key + " (" + std::to_string(at) +
+                                             " of " + std::to_string(bytes.size()) +
+                                             " bytes written): " + std::strerror(err));
     }
-    PutFile(key, tmp, sha256);  // the fsync of the file again is cheap: nothing is dirty
+    try {
+        PutFile(key, tmp, sha256);  // the fsync of the file again is cheap: nothing is dirty
+    } catch (...) {
+        std::error_code ec;
+        fs::remove(tmp, ec);
+        throw;
+    }
 }
 
 std::unique_ptr<BlobReader> DirBlobStore::Open(const std::string& key) const {
@@ -214,6 +235,24 @@ std::optional<std::uint64_t> DirBlobStore::Size(const std::string& key) const {
     const auto size = fs::file_size(PathOf(key), ec);
     if (ec) return std::nullopt;
     return size;
+}
+
+std::vector<std::pair<std::string, std::uint64_t>> DirBlobStore::List() const {
+    std::vector<std::pair<std::string, std::uint64_t>> out;
+    for (const char* sub : {"clouds", "results"}) {
+        std::error_code ec;
+        for (fs::directory_iterator it(dir_ + "/" + sub, ec), end; !ec && it != end;
+             it.increment(ec)) {
+            const std::string name = it->path().filename().string();
+            if (name.find(".tmp-") != std::string::npos) continue;  // a put in progress
+            std::error_code sec;
+            if (!it->is_regular_file(sec)) continue;
+            const auto size = it->file_size(sec);
+            if (!sec) out.emplace_back(std::string(sub) + "/" + name, size);
+        }
+    }
+    std::sort(out.begin(), out.end());
+    return out;
 }
 
 bool DirBlobStore::Remove(const std::string& key) {

@@ -27,6 +27,8 @@
 #include <optional>
 #include <string>
 #include <string_view>
+#include <utility>
+#include <vector>
 
 #include "surfel/worker/sha256.h"
 
@@ -71,6 +73,9 @@ public:
     /// its bytes: syncing the file to disk early (while an upload is received and validated)
     /// then shortens PutFile. The directory backend; not the large objects.
     virtual bool AdoptsFiles() const { return false; }
+    /// Every stored blob (key, size in bytes), sorted by key; never a temp file of a put in
+    /// progress. For retention's accounting at start (retention.h).
+    virtual std::vector<std::pair<std::string, std::uint64_t>> List() const = 0;
 };
 
 /// "clouds/<id>": the key of an uploaded cloud (its id is the SHA-256 of its bytes).
@@ -127,6 +132,7 @@ public:
     std::optional<std::uint64_t> Size(const std::string& key) const override;
     bool Remove(const std::string& key) override;
     bool AdoptsFiles() const override { return true; }
+    std::vector<std::pair<std::string, std::uint64_t>> List() const override;
     /// The file that holds `key`.
     std::string PathOf(const std::string& key) const { return dir_ + "/" + key; }
 
@@ -141,7 +147,12 @@ private:
 std::unique_ptr<BlobStore> OpenLargeObjectBlobStore(const std::string& url,
                                                     std::size_t chunk_bytes = 1 << 20);
 
-/// fsync of a file's data and metadata (kInternal naming the path on failure).
+/// True for the errno values of a full disk or quota (ENOSPC, EDQUOT): such failures are
+/// kResourceExhausted, not kInternal.
+bool IsDiskFull(int err);
+
+/// fsync of a file's data and metadata (kInternal naming the path on failure; kResourceExhausted
+/// when the filesystem reports it full, as NFS may at fsync).
 void SyncFile(const std::string& path);
 /// fsync of a directory, so that a rename or a new entry in it survives a power failure.
 void SyncDirectory(const std::string& dir);

@@ -236,6 +236,18 @@ public:
         return std::stoull(PQgetvalue(row.get(), 0, 0));
     }
 
+    std::vector<std::pair<std::string, std::uint64_t>> List() const override {
+        Tx tx(pool_);
+        Result rows = Exec(tx.conn(), "SELECT key, size FROM blobs ORDER BY key", {},
+                           PGRES_TUPLES_OK);
+        tx.Commit();
+        std::vector<std::pair<std::string, std::uint64_t>> out;
+        for (int i = 0; i < PQntuples(rows.get()); ++i)
+            out.emplace_back(PQgetvalue(rows.get(), i, 0),
+                             std::stoull(PQgetvalue(rows.get(), i, 1)));
+        return out;
+    }
+
     bool Remove(const std::string& key) override {
         Tx tx(pool_);
         PGconn* c = tx.conn();

@@ -52,10 +52,23 @@ v1::JobEvent FinishedEvent(const v1::Job& job) {
     return e;
 }
 
-std::string StoreResult(Store& store, const std::string& job_id, std::string_view bytes) {
+std::string StoreResult(Store& store, const std::string& job_id, std::string_view bytes,
+                        Retention* retention) {
     const std::string sha = Sha256Hex(bytes);
-    store.blobs().PutBytes(ResultBlobKey(job_id), bytes, sha);
+    const std::string key = ResultBlobKey(job_id);
+    if (retention) retention->Reserve(bytes.size(), "result of job " + job_id);
+    try {
+        store.blobs().PutBytes(key, bytes, sha);
+    } catch (...) {
+        if (retention) retention->Release(bytes.size());
+        throw;
+    }
+    if (retention) retention->Stored(key, bytes.size(), bytes.size());
     return sha;
+}
+
+bool StillReusable(const Store& store, const v1::Job& job) {
+    return job.state() != v1::SUCCEEDED || store.blobs().Exists(ResultBlobKey(job.id()));
 }
 
 void SetResult(v1::Job& job, const JobOutput& out) {
@@ -144,7 +157,15 @@ void JobManager::Transition(v1::Job& job, v1::JobState to) {
     const std::int64_t now = NowUnixMs();
     if (to == v1::RUNNING) job.set_started_unix_ms(now);
     if (IsFinal(to)) job.set_finished_unix_ms(now);
-    store_.PutJob(job, "");
+    try {
+        store_.PutJob(job, "");
+    } catch (const std::exception& e) {
+        // A worker thread must not die of it (a full disk under SQLite, docs/retention.md): the
+        // change is kept in memory and its watchers told; the store keeps the previous state,
+        // so after a restart an unfinished job runs again.
+        spdlog::error("job {}: cannot record {} in the store: {}", job.id(), v1::JobState_Name(to),
+                      e.what());
+    }
     if (hook_) hook_(job, from);
 }
 
@@ -192,7 +213,7 @@ v1::Job JobManager::Submit(const v1::JobSpec& spec, const std::string& tenant) {
     const std::string key = TenantJobKey(spec, tenant);
     std::lock_guard lock(mutex_);
     if (stopping_) throw Error(ErrorCode::kUnavailable, "the server is shutting down");
-    if (auto reused = store_.FindReusable(key)) {
+    if (auto reused = store_.FindReusable(key); reused && detail::StillReusable(store_, *reused)) {
         if (auto it = running_.find(reused->id()); it != running_.end()) *reused = it->second->job;
         reused->set_reused(true);
         spdlog::info("job {}: reused for an identical submission", reused->id());
@@ -348,12 +369,18 @@ void JobManager::WorkerLoop() {
 }
 
 std::shared_ptr<const PointCloud> JobManager::LoadCloud(const std::string& id) {
+    if (options_.retention) options_.retention->Touch(CloudBlobKey(id));  // LRU: used now
     {
         std::lock_guard lock(cache_mutex_);
         for (auto& [cid, cloud] : cache_)
             if (cid == id) return cloud;
     }
-    if (!store_.FindCloud(id)) throw Error(ErrorCode::kNotFound, "cloud " + id + " not found");
+    if (!store_.FindCloud(id)) {
+        if (options_.retention)
+            if (auto m = options_.retention->EvictedMessage(CloudBlobKey(id), "cloud " + id, nullptr))
+                throw Error(ErrorCode::kNotFound, *m);
+        throw Error(ErrorCode::kNotFound, "cloud " + id + " not found");
+    }
     PlyReadOptions limits;
     limits.max_points = options_.max_points;
     // Hashed while read (one pass over the bytes): a cloud's id is its SHA-256, so a flipped
@@ -403,7 +430,7 @@ void JobManager::Execute(const std::string& id) {
     try {
         const JobOutput out =
             RunJob(run->job.spec(), [&](const std::string& cloud_id) { return LoadCloud(cloud_id); }, progress);
-        const std::string sha = detail::StoreResult(store_, id, out.bytes);  // durable first
+        const std::string sha = detail::StoreResult(store_, id, out.bytes, options_.retention);  // durable first
         std::lock_guard lock(mutex_);
         done = run->job;
         detail::SetResult(done, out);

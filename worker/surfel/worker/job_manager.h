@@ -32,6 +32,8 @@
 
 namespace surfel::worker {
 
+class Retention;
+
 struct ManagerOptions {
     std::size_t workers = 0;       ///< Worker threads; 0 = hardware concurrency.
     std::size_t max_queued = 256;  ///< Jobs waiting; more -> Error(kResourceExhausted).
@@ -58,6 +60,10 @@ struct ManagerOptions {
     int job_nice = 10;
     /// Shared queue: the lease owner's prefix (default "<host>:<pid>"); thread i appends "/i".
     std::string worker_name;
+    /// Disk quota and retention (retention.h): results are reserved there before they are
+    /// written (kResourceExhausted when they cannot fit) and clouds marked used when loaded.
+    /// Not owned; null = none.
+    Retention* retention = nullptr;
 };
 
 /// Called for every event of one job (from worker threads or the caller of Submit/Cancel). Must

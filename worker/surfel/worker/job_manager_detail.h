@@ -10,6 +10,7 @@
 #include "surfel/v1/surfel.pb.h"
 #include "surfel/worker/job_kind.h"
 #include "surfel/worker/job_manager.h"
+#include "surfel/worker/retention.h"
 
 namespace surfel::worker {
 
@@ -35,8 +36,14 @@ v1::JobEvent FailedEvent(const v1::Job& job);
 /// The `finished` event of a SUCCEEDED job (its result).
 v1::JobEvent FinishedEvent(const v1::Job& job);
 /// Stores a job's result bytes as its blob (ResultBlobKey), durable before it returns, and
-/// returns their SHA-256 for JobResult.sha256.
-std::string StoreResult(Store& store, const std::string& job_id, std::string_view bytes);
+/// returns their SHA-256 for JobResult.sha256. With `retention`, the bytes are reserved first
+/// (evicting least recently used blobs; kResourceExhausted when they cannot fit) and recorded
+/// after. A full disk is kResourceExhausted; no partial blob is left behind.
+std::string StoreResult(Store& store, const std::string& job_id, std::string_view bytes,
+                        Retention* retention);
+/// Whether a job FindReusable returned may answer an identical submission: not a SUCCEEDED job
+/// whose result blob is gone (evicted), which must run again.
+bool StillReusable(const Store& store, const v1::Job& job);
 /// Fills `job`'s result from what RunJob gave (media type, extension, size, report, points,
 /// time) and marks it done (fraction 1, stage "done"); the state is the caller's to set.
 void SetResult(v1::Job& job, const JobOutput& out);

@@ -251,7 +251,7 @@ v1::Job JobManager::SharedSubmit(const v1::JobSpec& spec, const std::string& ten
         std::lock_guard lock(mutex_);
         if (stopping_) throw Error(ErrorCode::kUnavailable, "the server is shutting down");
     }
-    if (auto reused = store_.FindReusable(key)) {
+    if (auto reused = store_.FindReusable(key); reused && detail::StillReusable(store_, *reused)) {
         reused->set_reused(true);
         spdlog::info("job {}: reused for an identical submission", reused->id());
         return *reused;
@@ -426,7 +426,7 @@ void JobManager::ExecuteLeased(LeasedJob leased) {
         // Durable and atomic (dir: temp + fsync + rename; large objects: one transaction):
         // complete before any record names it. A second run of the same
         // job writes the same bytes.
-        const std::string sha = detail::StoreResult(store_, id, out.bytes);
+        const std::string sha = detail::StoreResult(store_, id, out.bytes, options_.retention);
         std::lock_guard lock(mutex_);
         done = run->job;
         detail::SetResult(done, out);

@@ -44,6 +44,19 @@ struct LeasedJob {
     int attempts = 0;
 };
 
+/// A stored blob's entry in the retention table (migration 6).
+struct BlobUsage {
+    std::string key;               ///< CloudBlobKey or ResultBlobKey
+    std::uint64_t size = 0;        ///< bytes
+    std::int64_t last_used_ms = 0; ///< Unix ms of its last store, job read or download
+};
+
+/// The tombstone of a blob evicted for one tenant.
+struct Eviction {
+    std::string reason;          ///< e.g. "least recently used, to stay under --max-disk-gb 1"
+    std::int64_t evicted_ms = 0; ///< Unix ms
+};
+
 /// A running delivery of cross-process hints (Store::Listen); destroying it stops the delivery.
 class Subscription {
 public:
@@ -141,6 +154,25 @@ public:
     /// Whether RequestCancel flagged this job.
     virtual bool CancelRequested(const std::string& job_id) const = 0;
 
+    // ---- disk retention (retention.h, docs/retention.md; migration 6)
+    /// Records a blob just stored: its size, last used now (`now_ms`); replaces an older entry
+    /// and clears the key's eviction tombstones (the bytes are back).
+    virtual void PutBlobUsage(const std::string& key, std::uint64_t size, std::int64_t now_ms) = 0;
+    /// Sets a recorded blob's last use to `now_ms`; nothing when it has no entry.
+    virtual void TouchBlobUsage(const std::string& key, std::int64_t now_ms) = 0;
+    /// Every entry, least recently used first (ties by key).
+    virtual std::vector<BlobUsage> ListBlobUsage() const = 0;
+    /// Removes a blob's entry; false when it had none.
+    virtual bool RemoveBlobUsage(const std::string& key) = 0;
+    /// Records that `key` was evicted for `tenant` (replacing an older tombstone).
+    virtual void PutEviction(const std::string& key, const std::string& tenant,
+                             const Eviction& eviction) = 0;
+    /// The tombstone of `key` for `tenant`, or for any tenant when `tenant` is null.
+    virtual std::optional<Eviction> FindEviction(const std::string& key,
+                                                 const std::string* tenant) const = 0;
+    /// The tenants that own cloud `id`, sorted.
+    virtual std::vector<std::string> CloudOwners(const std::string& id) const = 0;
+
     // ---- cross-process hints (PostgreSQL LISTEN/NOTIFY; nothing for SQLite). A hint is a
     // wake-up only: it may be lost (a reconnect, a crash before it was sent), so receivers also
     // poll the tables, which stay the state of record.
@@ -197,6 +229,15 @@ public:
     bool CancelRequested(const std::string& job_id) const override;
     std::size_t CountQueued() const override;
     std::uint32_t QueuePosition(const std::string& job_id) const override;
+    void PutBlobUsage(const std::string& key, std::uint64_t size, std::int64_t now_ms) override;
+    void TouchBlobUsage(const std::string& key, std::int64_t now_ms) override;
+    std::vector<BlobUsage> ListBlobUsage() const override;
+    bool RemoveBlobUsage(const std::string& key) override;
+    void PutEviction(const std::string& key, const std::string& tenant,
+                     const Eviction& eviction) override;
+    std::optional<Eviction> FindEviction(const std::string& key,
+                                         const std::string* tenant) const override;
+    std::vector<std::string> CloudOwners(const std::string& id) const override;
 
 private:
     bool DeleteCloudRecord(const std::string& id) override;

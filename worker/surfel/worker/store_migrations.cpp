@@ -18,6 +18,9 @@ namespace {
 // Version 5 adds the index of large-object blobs (`--blobs postgres`, blob_store_postgres.cpp):
 // key ("clouds/<sha256>", "results/<job id>") -> large object oid, size, SHA-256. SQLite keeps
 // the same table, empty (it has no large objects), so that both dialects stay one schema.
+// Version 6 adds disk retention (docs/retention.md, retention.h): each stored blob's size and
+// when it was last used (LRU eviction under --max-disk-gb, time-to-live per tenant), and the
+// tombstones of evicted blobs per tenant, so that a later read says "evicted", not "unknown".
 constexpr std::array kMigrations{
     Migration{1, "clouds and jobs",
               "CREATE TABLE IF NOT EXISTS clouds (id TEXT PRIMARY KEY, record BLOB NOT NULL, "
@@ -62,6 +65,17 @@ constexpr std::array kMigrations{
               "size INTEGER NOT NULL, sha256 TEXT NOT NULL, created_ms INTEGER NOT NULL);",
               "CREATE TABLE IF NOT EXISTS blobs (key TEXT PRIMARY KEY, oid OID NOT NULL, "
               "size BIGINT NOT NULL, sha256 TEXT NOT NULL, created_ms BIGINT NOT NULL);"},
+    Migration{6, "blob usage and evictions",
+              "CREATE TABLE blob_usage (key TEXT PRIMARY KEY, size INTEGER NOT NULL, "
+              "last_used_ms INTEGER NOT NULL);"
+              "CREATE INDEX blob_usage_lru ON blob_usage(last_used_ms);"
+              "CREATE TABLE evictions (key TEXT NOT NULL, tenant TEXT NOT NULL, "
+              "reason TEXT NOT NULL, evicted_ms INTEGER NOT NULL, PRIMARY KEY (key, tenant));",
+              "CREATE TABLE blob_usage (key TEXT PRIMARY KEY, size BIGINT NOT NULL, "
+              "last_used_ms BIGINT NOT NULL);"
+              "CREATE INDEX blob_usage_lru ON blob_usage(last_used_ms);"
+              "CREATE TABLE evictions (key TEXT NOT NULL, tenant TEXT NOT NULL, "
+              "reason TEXT NOT NULL, evicted_ms BIGINT NOT NULL, PRIMARY KEY (key, tenant));"},
 };
 
 }  // namespace

@@ -573,3 +573,78 @@ std::unique_ptr<Subscription> PostgresStore::Listen(HintFn fn) {
 }
 
 }  // namespace surfel::worker
+
+// ---- disk retention (migration 6)
+
+namespace surfel::worker {
+
+void PostgresStore::PutBlobUsage(const std::string& key, std::uint64_t size, std::int64_t now_ms) {
+    std::lock_guard lock(impl_->mutex);
+    Impl::Transaction tx(*impl_);
+    impl_->Exec(
+        "INSERT INTO blob_usage (key, size, last_used_ms) VALUES ($1, $2, $3) ON CONFLICT (key) "
+        "DO UPDATE SET size = excluded.size, last_used_ms = excluded.last_used_ms",
+        Params().Text(key).Int(static_cast<std::int64_t>(size)).Int(now_ms), PGRES_COMMAND_OK);
+    impl_->Exec("DELETE FROM evictions WHERE key = $1", Params().Text(key), PGRES_COMMAND_OK);
+    tx.Commit();
+}
+
+void PostgresStore::TouchBlobUsage(const std::string& key, std::int64_t now_ms) {
+    std::lock_guard lock(impl_->mutex);
+    impl_->Exec("UPDATE blob_usage SET last_used_ms = GREATEST(last_used_ms, $1) WHERE key = $2",
+                Params().Int(now_ms).Text(key), PGRES_COMMAND_OK);
+}
+
+std::vector<BlobUsage> PostgresStore::ListBlobUsage() const {
+    std::lock_guard lock(impl_->mutex);
+    Result r = impl_->Exec(
+        "SELECT key, size, last_used_ms FROM blob_usage ORDER BY last_used_ms, key", Params());
+    std::vector<BlobUsage> out;
+    for (int i = 0; i < PQntuples(r.get()); ++i)
+        out.push_back({std::string(Bytes(r.get(), i, 0)),
+                       static_cast<std::uint64_t>(Int(r.get(), i, 1)), Int(r.get(), i, 2)});
+    return out;
+}
+
+bool PostgresStore::RemoveBlobUsage(const std::string& key) {
+    std::lock_guard lock(impl_->mutex);
+    Result r = impl_->Exec("DELETE FROM blob_usage WHERE key = $1 RETURNING key", Params().Text(key));
+    return PQntuples(r.get()) > 0;
+}
+
+void PostgresStore::PutEviction(const std::string& key, const std::string& tenant,
+                                const Eviction& eviction) {
+    std::lock_guard lock(impl_->mutex);
+    impl_->Exec(
+        "INSERT INTO evictions (key, tenant, reason, evicted_ms) VALUES ($1, $2, $3, $4) "
+        "ON CONFLICT (key, tenant) DO UPDATE SET reason = excluded.reason, "
+        "evicted_ms = excluded.evicted_ms",
+        Params().Text(key).Text(tenant).Text(eviction.reason).Int(eviction.evicted_ms),
+        PGRES_COMMAND_OK);
+}
+
+std::optional<Eviction> PostgresStore::FindEviction(const std::string& key,
+                                                    const std::string* tenant) const {
+    std::lock_guard lock(impl_->mutex);
+    Result r = tenant ? impl_->Exec(
+                            "SELECT reason, evicted_ms FROM evictions WHERE key = $1 AND "
+                            "tenant = $2",
+                            Params().Text(key).Text(*tenant))
+                      : impl_->Exec(
+                            "SELECT reason, evicted_ms FROM evictions WHERE key = $1 ORDER BY "
+                            "evicted_ms DESC LIMIT 1",
+                            Params().Text(key));
+    if (PQntuples(r.get()) == 0) return std::nullopt;
+    return Eviction{std::string(Bytes(r.get(), 0, 0)), Int(r.get(), 0, 1)};
+}
+
+std::vector<std::string> PostgresStore::CloudOwners(const std::string& id) const {
+    std::lock_guard lock(impl_->mutex);
+    Result r = impl_->Exec("SELECT tenant FROM cloud_owners WHERE cloud_id = $1 ORDER BY tenant",
+                           Params().Text(id));
+    std::vector<std::string> out;
+    for (int i = 0; i < PQntuples(r.get()); ++i) out.emplace_back(Bytes(r.get(), i, 0));
+    return out;
+}
+
+}  // namespace surfel::worker

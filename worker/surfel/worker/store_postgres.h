@@ -45,6 +45,15 @@ public:
     bool CancelRequested(const std::string& job_id) const override;
     std::size_t CountQueued() const override;
     std::uint32_t QueuePosition(const std::string& job_id) const override;
+    void PutBlobUsage(const std::string& key, std::uint64_t size, std::int64_t now_ms) override;
+    void TouchBlobUsage(const std::string& key, std::int64_t now_ms) override;
+    std::vector<BlobUsage> ListBlobUsage() const override;
+    bool RemoveBlobUsage(const std::string& key) override;
+    void PutEviction(const std::string& key, const std::string& tenant,
+                     const Eviction& eviction) override;
+    std::optional<Eviction> FindEviction(const std::string& key,
+                                         const std::string* tenant) const override;
+    std::vector<std::string> CloudOwners(const std::string& id) const override;
     bool shared() const override { return true; }
     /// `SELECT pg_notify('surfel_hints', payload)`.
     void Publish(const std::string& payload) override;

@@ -1,5 +1,6 @@
 // The SQLite backend of the store: one connection in WAL mode behind a mutex.
 #include <SQLiteCpp/SQLiteCpp.h>
+#include <sqlite3.h>
 
 #include <filesystem>
 #include <mutex>
@@ -18,6 +19,17 @@ v1::Job ParseJob(const SQLite::Column& blob) {
     if (!job.ParseFromArray(blob.getBlob(), blob.getBytes()))
         throw Error(ErrorCode::kInternal, "store: a job record does not parse");
     return job;
+}
+
+/// Runs a write; a full disk (SQLITE_FULL) is kResourceExhausted naming `what`, not INTERNAL.
+void ExecWrite(SQLite::Statement& q, const char* what) {
+    try {
+        q.exec();
+    } catch (const SQLite::Exception& e) {
+        if (e.getErrorCode() == SQLITE_FULL)
+            throw Error(ErrorCode::kResourceExhausted, std::string("database: ") + what + ": " + e.what());
+        throw;
+    }
 }
 
 void BindRecord(SQLite::Statement& q, int index, const std::string& blob) {
@@ -100,7 +112,7 @@ void SqliteStore::PutCloud(const v1::Cloud& cloud) {
     q.bind(1, cloud.id());
     BindRecord(q, 2, blob);
     q.bind(3, static_cast<std::int64_t>(NowUnixMs()));
-    q.exec();
+    ExecWrite(q, "recording a cloud");
 }
 
 bool SqliteStore::DeleteCloudRecord(const std::string& id) {
@@ -130,7 +142,7 @@ void SqliteStore::AddCloudOwner(const std::string& tenant, const std::string& id
                         "INSERT OR IGNORE INTO cloud_owners (tenant, cloud_id) VALUES (?, ?)");
     q.bind(1, tenant);
     q.bind(2, id);
-    q.exec();
+    ExecWrite(q, "recording an owner");
 }
 
 bool SqliteStore::RemoveCloudOwner(const std::string& tenant, const std::string& id,
@@ -165,7 +177,7 @@ void SqliteStore::PutJob(const v1::Job& job, const std::string& key) {
     q.bind(4, static_cast<std::int64_t>(job.created_unix_ms()));
     BindRecord(q, 5, blob);
     q.bind(6, job.tenant());
-    q.exec();
+    ExecWrite(q, "recording a job");
 }
 
 std::optional<v1::Job> SqliteStore::FindJob(const std::string& id) const {
@@ -382,6 +394,93 @@ std::uint32_t SqliteStore::QueuePosition(const std::string& job_id) const {
     q.bind(3, static_cast<int>(v1::QUEUED));
     q.executeStep();
     return static_cast<std::uint32_t>(q.getColumn(0).getInt64());
+}
+
+}  // namespace surfel::worker
+
+// ---- disk retention (migration 6)
+
+namespace surfel::worker {
+
+void SqliteStore::PutBlobUsage(const std::string& key, std::uint64_t size, std::int64_t now_ms) {
+    std::lock_guard lock(impl_->mutex);
+    SQLite::Transaction tx(impl_->db);
+    SQLite::Statement q(impl_->db,
+                        "INSERT INTO blob_usage (key, size, last_used_ms) VALUES (?, ?, ?) "
+                        "ON CONFLICT(key) DO UPDATE SET size = excluded.size, "
+                        "last_used_ms = excluded.last_used_ms");
+    q.bind(1, key);
+    q.bind(2, static_cast<std::int64_t>(size));
+    q.bind(3, static_cast<std::int64_t>(now_ms));
+    q.exec();
+    SQLite::Statement e(impl_->db, "DELETE FROM evictions WHERE key = ?");
+    e.bind(1, key);
+    e.exec();
+    tx.commit();
+}
+
+void SqliteStore::TouchBlobUsage(const std::string& key, std::int64_t now_ms) {
+    std::lock_guard lock(impl_->mutex);
+    SQLite::Statement q(impl_->db, "UPDATE blob_usage SET last_used_ms = ? WHERE key = ?");
+    q.bind(1, static_cast<std::int64_t>(now_ms));
+    q.bind(2, key);
+    q.exec();
+}
+
+std::vector<BlobUsage> SqliteStore::ListBlobUsage() const {
+    std::lock_guard lock(impl_->mutex);
+    SQLite::Statement q(impl_->db,
+                        "SELECT key, size, last_used_ms FROM blob_usage ORDER BY last_used_ms, key");
+    std::vector<BlobUsage> out;
+    while (q.executeStep())
+        out.push_back({q.getColumn(0).getString(),
+                       static_cast<std::uint64_t>(q.getColumn(1).getInt64()),
+                       q.getColumn(2).getInt64()});
+    return out;
+}
+
+bool SqliteStore::RemoveBlobUsage(const std::string& key) {
+    std::lock_guard lock(impl_->mutex);
+    SQLite::Statement q(impl_->db, "DELETE FROM blob_usage WHERE key = ?");
+    q.bind(1, key);
+    return q.exec() > 0;
+}
+
+void SqliteStore::PutEviction(const std::string& key, const std::string& tenant,
+                              const Eviction& eviction) {
+    std::lock_guard lock(impl_->mutex);
+    SQLite::Statement q(impl_->db,
+                        "INSERT OR REPLACE INTO evictions (key, tenant, reason, evicted_ms) "
+                        "VALUES (?, ?, ?, ?)");
+    q.bind(1, key);
+    q.bind(2, tenant);
+    q.bind(3, eviction.reason);
+    q.bind(4, static_cast<std::int64_t>(eviction.evicted_ms));
+    q.exec();
+}
+
+std::optional<Eviction> SqliteStore::FindEviction(const std::string& key,
+                                                  const std::string* tenant) const {
+    std::lock_guard lock(impl_->mutex);
+    SQLite::Statement q(impl_->db,
+                        tenant ? "SELECT reason, evicted_ms FROM evictions WHERE key = ? AND "
+                                 "tenant = ?"
+                               : "SELECT reason, evicted_ms FROM evictions WHERE key = ? "
+                                 "ORDER BY evicted_ms DESC LIMIT 1");
+    q.bind(1, key);
+    if (tenant) q.bind(2, *tenant);
+    if (!q.executeStep()) return std::nullopt;
+    return Eviction{q.getColumn(0).getString(), q.getColumn(1).getInt64()};
+}
+
+std::vector<std::string> SqliteStore::CloudOwners(const std::string& id) const {
+    std::lock_guard lock(impl_->mutex);
+    SQLite::Statement q(impl_->db,
+                        "SELECT tenant FROM cloud_owners WHERE cloud_id = ? ORDER BY tenant");
+    q.bind(1, id);
+    std::vector<std::string> out;
+    while (q.executeStep()) out.push_back(q.getColumn(0).getString());
+    return out;
 }
 
 }  // namespace surfel::worker
