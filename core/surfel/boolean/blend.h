@@ -47,7 +47,8 @@ struct BlendReport {
 /// both there (cylinders and spheres satisfy co-circularity exactly). The pairs' crease flags
 /// and second normals are all cleared: the result renders as one smooth surface. A knife edge (a
 /// pair's normals more than 120 degrees apart, a surface leaving the other almost tangentially)
-/// is held fixed with its A-side normal. Neighbourhoods are rebuilt every 10 steps and join
+/// is held fixed with its A-side normal; when knife edges are more than half of the pairs the
+/// cloud is left as it is (report.moved 0, knife_edges set): blending such a rim tears it. Neighbourhoods are rebuilt every 10 steps and join
 /// only samples whose starting normals are less than 90 degrees apart, so the two sheets of an
 /// obtuse crease or a thin part interact only through the pairs between them. Deterministic
 /// whatever the thread count. A cloud without curve samples is left as it is (report.moved 0).

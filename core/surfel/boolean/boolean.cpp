@@ -795,6 +795,10 @@ BooleanResult Boolean(const PointCloud& a, const PointCloud& b, BooleanOp op,
     if (options.blend_radius > 0.0) {
         rep.blend = BlendCreases(result.cloud, options.blend_radius, options.blend_iterations, &tracker);
         if (curve.empty()) rep.notes.push_back("no intersection curve: nothing to blend");
+        else if (rep.blend.moved == 0 && 2 * rep.blend.knife_edges > curve.size())
+            rep.notes.push_back("not blended: " + std::to_string(rep.blend.knife_edges) + " of " +
+                                std::to_string(curve.size()) +
+                                " crease pairs are knife edges (normals over 120 degrees apart); the creases stay sharp");
     }
     tracker.Advance(1.0);
     rep.time_ms = watch.ElapsedMs();

@@ -866,6 +866,24 @@ TEST(BooleanBlend, IndependentOfTheThreadCountAndChecksItsOptions) {
         EXPECT_EQ(CodeOf([&] { opt.Validate(); }, &what), ErrorCode::kInvalidArgument);
         EXPECT_NE(what.find("blend_iterations"), std::string::npos) << what;
     }
+    // A bite out of a sphere: its rim is sharper than 60 degrees all round (normals 136 degrees
+    // apart), every pair a knife edge. Blending it tore the render, so the result stays as it
+    // is, and the report says so.
+    {
+        const PointCloud a = test::EvenSphere(8000), b = test::EvenSphere(8000, 0.8);
+        BooleanOptions bite;
+        bite.transform.translation = Vec3d(0.7, 0, 0);
+        const BooleanResult sharp = Boolean(a, b, BooleanOp::kDifference, bite);
+        bite.blend_radius = 0.1;
+        const BooleanResult kept = Boolean(a, b, BooleanOp::kDifference, bite);
+        ASSERT_GT(sharp.report.curve_samples, 50u);
+        EXPECT_EQ(kept.report.blend.knife_edges, sharp.report.curve_samples);
+        EXPECT_EQ(kept.report.blend.moved, 0u);
+        EXPECT_EQ(kept.cloud.positions, sharp.cloud.positions);
+        EXPECT_EQ(kept.cloud.normals, sharp.cloud.normals);
+        ASSERT_FALSE(kept.report.notes.empty());
+        EXPECT_NE(kept.report.notes.back().find("knife edges"), std::string::npos) << kept.report.notes.back();
+    }
     // Disjoint inputs have no curve: the blend leaves them as they are and says so.
     BooleanOptions apart;
     apart.blend_radius = kBlendR;
