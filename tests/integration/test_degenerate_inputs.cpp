@@ -16,6 +16,7 @@
 #include <functional>
 #include <set>
 
+#include "exr_bytes.h"
 #include "server_process.h"
 #include "service_client.h"
 #include "surfel/base/error.h"
@@ -255,21 +256,6 @@ TEST_P(InProcess, ClearErrorOrFiniteResult) {
 
 std::string VariantName(const ::testing::TestParamInfo<JobVariant>& info) { return info.param.name; }
 
-// An EXR's `capDate` header holds the local time of its encode, to the second (OpenImageIO's and
-// the EXR plugin's alike): two renders of one spec differ there whenever their encodes straddle a
-// second. Blanked (same length) so that a comparison sees the image and the rest of the header.
-std::string WithoutCaptureDate(std::string bytes) {
-    static const std::string kKey("capDate\0string\0", 15);
-    if (bytes.rfind("\x76\x2f\x31\x01", 0) != 0) return bytes;  // not an EXR
-    const std::size_t at = bytes.find(kKey);
-    if (at == std::string::npos || at + kKey.size() + 4 > bytes.size()) return bytes;
-    const std::size_t value = at + kKey.size() + 4;
-    std::uint32_t size = 0;  // little-endian int32 before the value
-    for (int i = 3; i >= 0; --i) size = size << 8 | static_cast<unsigned char>(bytes[at + kKey.size() + i]);
-    if (value + size <= bytes.size()) bytes.replace(value, size, std::string(size, '0'));
-    return bytes;
-}
-
 INSTANTIATE_TEST_SUITE_P(Degenerate, InProcess, ::testing::ValuesIn(JobVariants()), VariantName);
 
 // ---- Through the server ------------------------------------------------------------------------
@@ -345,7 +331,7 @@ TEST_P(ThroughTheServer, SameOutcomeAsInProcess) {
         EXPECT_EQ(there.ok, here.ok) << "server: " << there.message << "\nin-process: " << here.message;
         EXPECT_EQ(there.code, here.code);
         EXPECT_EQ(there.message, here.message);
-        EXPECT_TRUE(WithoutCaptureDate(there.bytes) == WithoutCaptureDate(here.bytes)) << "result bytes differ";
+        EXPECT_TRUE(test::WithoutCaptureDate(there.bytes) == test::WithoutCaptureDate(here.bytes)) << "result bytes differ";
         ASSERT_NO_THROW(c.ListJobs(1)) << "the server stopped serving";
     }
 }

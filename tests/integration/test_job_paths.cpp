@@ -6,6 +6,7 @@
 #include <filesystem>
 #include <string>
 
+#include "exr_bytes.h"
 #include "server_process.h"
 #include "service_client.h"
 #include "surfel/base/shapes.h"
@@ -44,21 +45,6 @@ std::string KindName(const ::testing::TestParamInfo<const worker::JobKind*>& inf
     return std::string(info.param->Name());
 }
 
-// OpenImageIO stamps every EXR with the local time it was written (the header's `capDate`
-// string, to the second); two renders of one spec differ there and nowhere else. This blanks
-// the stamp's value (same length) so that the comparison sees the image and the rest of the header.
-std::string WithoutCaptureDate(std::string bytes) {
-    static const std::string kKey("capDate\0string\0", 15);
-    if (bytes.rfind("\x76\x2f\x31\x01", 0) != 0) return bytes;  // not an EXR
-    const std::size_t at = bytes.find(kKey);
-    if (at == std::string::npos || at + kKey.size() + 4 > bytes.size()) return bytes;
-    const std::size_t value = at + kKey.size() + 4;
-    std::uint32_t size = 0;  // little-endian int32 before the value
-    for (int i = 3; i >= 0; --i) size = size << 8 | static_cast<unsigned char>(bytes[at + kKey.size() + i]);
-    if (value + size <= bytes.size()) bytes.replace(value, size, std::string(size, '0'));
-    return bytes;
-}
-
 INSTANTIATE_TEST_SUITE_P(JobKinds, JobPaths, ::testing::ValuesIn(worker::JobKinds().begin(), worker::JobKinds().end()),
                          KindName);
 
@@ -85,7 +71,7 @@ TEST_P(JobPaths, InProcessAndThroughTheServerGiveTheSameBytes) {
     EXPECT_EQ(there.result.extension(), here.extension);
     EXPECT_EQ(there.result.points(), here.points);
     ASSERT_EQ(there.bytes.size(), here.bytes.size());
-    EXPECT_TRUE(WithoutCaptureDate(there.bytes) == WithoutCaptureDate(here.bytes))
+    EXPECT_TRUE(test::WithoutCaptureDate(there.bytes) == test::WithoutCaptureDate(here.bytes))
         << kind.Name() << ": result bytes differ";
 }
 
@@ -125,7 +111,7 @@ TEST_F(CsgRenderPaths, InProcessAndThroughTheServerGiveTheSameBytes) {
     const client::WatchOutcome there = c.Watch(job.id(), /*include_result=*/true, /*cancel_on_disconnect=*/false);
     ASSERT_EQ(there.state, v1::SUCCEEDED) << there.status_message;
     ASSERT_EQ(there.bytes.size(), here.bytes.size());
-    EXPECT_TRUE(WithoutCaptureDate(there.bytes) == WithoutCaptureDate(here.bytes)) << "CSG render bytes differ";
+    EXPECT_TRUE(test::WithoutCaptureDate(there.bytes) == test::WithoutCaptureDate(here.bytes)) << "CSG render bytes differ";
 
     // Without its second cloud the spec is refused naming the field.
     v1::JobSpec missing = remote;

@@ -22,6 +22,7 @@
 #include <vector>
 
 #include "../pg_cluster.h"
+#include "exr_bytes.h"
 #include "server_process.h"
 #include "service_client.h"
 #include "surfel/base/shapes.h"
@@ -106,19 +107,6 @@ int Count(const std::string& text, const std::string& needle) {
     return n;
 }
 
-/// The bytes with the value of an OpenEXR header's `capDate` attribute blanked: OpenImageIO
-/// stamps the wall-clock second into every EXR it writes (core/io/image.cpp sets no DateTime), so
-/// two runs of one render differ there and only there. Other files are returned unchanged.
-std::string WithoutCapDate(std::string bytes) {
-    static const std::string kAttr("capDate\0string\0", 15);
-    if (bytes.compare(0, 4, "v/1\x01") != 0) return bytes;
-    const std::size_t at = bytes.find(kAttr);
-    if (at == std::string::npos || at + kAttr.size() + 4 > bytes.size()) return bytes;
-    const std::size_t size = static_cast<unsigned char>(bytes[at + kAttr.size()]);
-    const std::size_t value = at + kAttr.size() + 4;
-    for (std::size_t i = value; i < value + size && i < bytes.size(); ++i) bytes[i] = '?';
-    return bytes;
-}
 
 class ScaleOutTest : public ::testing::Test {
   protected:
@@ -260,7 +248,7 @@ TEST_F(ScaleOutTest, MixedJobsAcrossTwoServersSucceedOnceWithSingleNodeBytes) {
     const std::vector<std::string> reference = SingleNodeBytes(specs);
     ASSERT_EQ(reference.size(), bytes.size());
     for (int i = 0; i < kJobs; ++i)
-        EXPECT_TRUE(WithoutCapDate(bytes[i]) == WithoutCapDate(reference[i]))
+        EXPECT_TRUE(test::WithoutCaptureDate(bytes[i]) == test::WithoutCaptureDate(reference[i]))
             << "job " << i << " differs";
 }
 
@@ -487,7 +475,7 @@ TEST_F(ScaleOutTest, PostgresRestartedMidRunNothingAcknowledgedIsLost) {
     }
     const std::vector<std::string> reference = SingleNodeBytes(acknowledged);
     for (std::size_t i = 0; i < ids.size(); ++i)
-        EXPECT_TRUE(WithoutCapDate(bytes[i]) == WithoutCapDate(reference[i])) << "job " << i;
+        EXPECT_TRUE(test::WithoutCaptureDate(bytes[i]) == test::WithoutCaptureDate(reference[i])) << "job " << i;
     EXPECT_EQ(Cluster::Exec(url_, "SELECT COUNT(*) FROM jobs WHERE state <> 3"),
               "0");  // 3: SUCCEEDED
 }
