@@ -179,17 +179,7 @@ void UploadSession::Append(std::string_view data) {
                                       " committed bytes were discarded: upload it again");
         }
     }
-    std::size_t at = 0;
-    int err = 0;
-    while (at < data.size()) {
-        const ssize_t n = ::write(fd_, data.data() + at, data.size() - at);
-        if (n < 0 && errno == EINTR) continue;
-        if (n < 0) {
-            err = errno;
-            break;
-        }
-        at += static_cast<std::size_t>(n);
-    }
+    const int err = worker::WriteAll(fd_, data);
     if (err != 0) {
         // Nothing of this chunk stays; on a full disk the whole part file goes, and its space.
         if (::ftruncate(fd_, static_cast<off_t>(committed_)) != 0) {

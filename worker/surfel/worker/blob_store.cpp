@@ -87,6 +87,22 @@ std::string ReadVerified(const BlobStore& store, const std::string& key,
 
 bool IsDiskFull(int err) { return err == ENOSPC || err == EDQUOT; }
 
+int WriteAll(int fd, std::string_view bytes, std::size_t* written) {
+    std::size_t at = 0;
+    int err = 0;
+    while (at < bytes.size()) {
+        const ssize_t n = ::write(fd, bytes.data() + at, bytes.size() - at);
+        if (n < 0 && errno == EINTR) continue;
+        if (n < 0) {
+            err = errno;
+            break;
+        }
+        at += static_cast<std::size_t>(n);
+    }
+    if (written) *written = at;
+    return err;
+}
+
 namespace {
 ErrorCode WriteErrorCode(int err) {
     return IsDiskFull(err) ? ErrorCode::kResourceExhausted : ErrorCode::kInternal;
@@ -186,16 +202,7 @@ void DirBlobStore::PutBytes(const std::string& key, std::string_view bytes,
                     "storing blob " + key + ": " + tmp + ": " + std::strerror(err));
     }
     std::size_t at = 0;
-    int err = 0;
-    while (at < bytes.size()) {
-        const ssize_t n = ::write(fd, bytes.data() + at, bytes.size() - at);
-        if (n < 0 && errno == EINTR) continue;
-        if (n < 0) {
-            err = errno;
-            break;
-        }
-        at += static_cast<std::size_t>(n);
-    }
+    int err = WriteAll(fd, bytes, &at);
     if (err == 0 && ::fsync(fd) != 0) err = errno;
     ::close(fd);
     if (err != 0) {

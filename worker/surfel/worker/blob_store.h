@@ -151,6 +151,10 @@ std::unique_ptr<BlobStore> OpenLargeObjectBlobStore(const std::string& url,
 /// kResourceExhausted, not kInternal.
 bool IsDiskFull(int err);
 
+/// Writes all of `bytes` to `fd`, retrying short writes and EINTR. Returns 0, or the errno of
+/// the write that failed (the file then holds the first *written bytes).
+int WriteAll(int fd, std::string_view bytes, std::size_t* written = nullptr);
+
 /// fsync of a file's data and metadata (kInternal naming the path on failure; kResourceExhausted
 /// when the filesystem reports it full, as NFS may at fsync).
 void SyncFile(const std::string& path);
