@@ -102,6 +102,7 @@ struct Flags {
     double max_disk_gb = 0;
     std::vector<std::string> ttl;
     double retention_sweep_s = 60;
+    std::string upload_ttl = "24h";
     std::string metrics;
     std::string port_file;
     double grace_s = 10;
@@ -230,6 +231,10 @@ int main(int argc, char** argv) {
                    "tenant, TENANT=DURATION for one (repeat the flag); 90s, 15m, 12h, 7d; 0 = keep")
         ->allow_extra_args(false)
         ->multi_option_policy(CLI::MultiOptionPolicy::TakeAll);
+    app.add_option("--upload-ttl", f.upload_ttl,
+                   "Time-to-live of an unfinished upload's part file since its last write: an upload abandoned "
+                   "for longer is removed by the sweep and must start again; 90s, 15m, 12h, 7d; 0 = keep")
+        ->default_val("24h");
     app.add_option("--retention-sweep-s", f.retention_sweep_s, "Seconds between time-to-live sweeps")
         ->default_val(60)
         ->check(CLI::Range(0.05, 86400.0));
@@ -318,6 +323,7 @@ int main(int argc, char** argv) {
         worker::RetentionOptions ro;
         ro.max_disk_bytes = static_cast<std::uint64_t>(f.max_disk_gb * 1e9);
         for (const std::string& t : f.ttl) worker::ApplyTtlFlag(t, &ro);
+        ro.upload_ttl_ms = worker::ParseDurationMs(f.upload_ttl, "--upload-ttl");
         worker::Retention retention(store, ro, [&](const std::string& kind, const std::string& cause,
                                                    std::uint64_t bytes) { metrics.CountEviction(kind, cause, bytes); });
         retention.Load();
@@ -429,6 +435,18 @@ int main(int argc, char** argv) {
                 if (std::chrono::steady_clock::now() >= next_sweep) {
                     try {
                         retention.Sweep(worker::NowUnixMs());
+                        // Abandoned uploads' part files, each under its upload id's claim (an
+                        // upload call holding it keeps it; at --max-uploads it waits a sweep).
+                        retention.SweepUploads(
+                            worker::NowUnixMs(),
+                            [&](const std::string& id) {
+                                try {
+                                    return ops.ClaimUpload(id);
+                                } catch (const Error&) {
+                                    return false;
+                                }
+                            },
+                            [&](const std::string& id) { ops.ReleaseUpload(id); });
                     } catch (const std::exception& e) {
                         spdlog::warn("retention sweep: {}", e.what());
                     }

@@ -8,7 +8,8 @@
 //  - a real full filesystem (a 1 MiB tmpfs): an upload that does not fit and a result write
 //    that hits ENOSPC are RESOURCE_EXHAUSTED, no half-written file stays, the server keeps
 //    serving, and what was acknowledged before is intact (SHA-256);
-//  - --max-upload-inflight-mb: bytes received and not yet stored, over all upload calls.
+//  - --max-upload-inflight-mb: bytes received and not yet stored, over all upload calls;
+//  - --upload-ttl: the part file of an abandoned upload goes, never one an upload call holds.
 #include <fcntl.h>
 #include <grpcpp/grpcpp.h>
 #include <gtest/gtest.h>
@@ -351,6 +352,62 @@ TEST_F(DiskTest, UploadBytesInFlightAreCappedAndTheHeldBytesKeptForAResume) {
     v1::QueryUploadResponse r;
     ASSERT_TRUE(stub->QueryUpload(&qc, q, &r).ok());
     EXPECT_EQ(r.committed_size(), 200 << 10);
+}
+
+
+/// The committed size the server reports for `upload_id` (QueryUpload).
+std::int64_t Committed(v1::Surfel::Stub& stub, const std::string& upload_id) {
+    v1::QueryUploadRequest q;
+    q.set_upload_id(upload_id);
+    grpc::ClientContext qc;
+    v1::QueryUploadResponse r;
+    const grpc::Status s = stub.QueryUpload(&qc, q, &r);
+    EXPECT_TRUE(s.ok()) << s.error_message();
+    return r.committed_size();
+}
+
+TEST_F(DiskTest, AbandonedUploadPartFilesExpireButNotWhileAnUploadHoldsThem) {
+    const std::string data = (dir_ / "data").string();
+    const fs::path uploads = fs::path(data) / "uploads";
+    fs::create_directories(uploads);
+    // Left by uploads before this start: one abandoned two days ago, one written to just now.
+    const fs::path abandoned = uploads / "abandoned.part";
+    const fs::path fresh = uploads / "fresh.part";
+    WriteFileBytes(abandoned.string(), std::string(1000, 'x'));
+    WriteFileBytes(fresh.string(), std::string(700, 'y'));
+    fs::last_write_time(abandoned, fs::last_write_time(abandoned) - std::chrono::hours(48));
+    testing::ServerProcess server(data, {"--upload-ttl", "1h", "--retention-sweep-s", "0.1"});
+    auto stub = v1::Surfel::NewStub(
+        grpc::CreateChannel(server.target(), grpc::InsecureChannelCredentials()));
+    for (int i = 0; i < 100 && fs::exists(abandoned); ++i)
+        std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    EXPECT_FALSE(fs::exists(abandoned));
+    EXPECT_EQ(Committed(*stub, "abandoned"), 0);  // an upload of that id starts again
+    EXPECT_EQ(Committed(*stub, "fresh"), 700);
+
+    // A call in progress holds its upload id: its part file stays however old it looks.
+    grpc::ClientContext ctx;
+    v1::Cloud response;
+    auto writer = stub->Upload(&ctx, &response);
+    v1::UploadRequest held;
+    held.set_upload_id("held-open");
+    held.set_filename("x.ply");
+    held.set_data(std::string(4096, 'z'));
+    ASSERT_TRUE(writer->Write(held));
+    const fs::path part = uploads / "held-open.part";
+    for (int i = 0; i < 300 && Committed(*stub, "held-open") != 4096; ++i)
+        std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    ASSERT_EQ(Committed(*stub, "held-open"), 4096);
+    fs::last_write_time(part, fs::last_write_time(part) - std::chrono::hours(48));
+    std::this_thread::sleep_for(std::chrono::milliseconds(600));  // several sweeps
+    EXPECT_TRUE(fs::exists(part));
+    // Once the call has ended, the part file is abandoned like any other.
+    ctx.TryCancel();
+    writer->Finish();
+    for (int i = 0; i < 100 && fs::exists(part); ++i)
+        std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    EXPECT_FALSE(fs::exists(part));
+    EXPECT_TRUE(fs::exists(fresh));
 }
 
 }  // namespace

@@ -2,6 +2,7 @@
 #include "surfel/worker/retention.h"
 
 #include <spdlog/spdlog.h>
+#include <sys/stat.h>
 
 #include <algorithm>
 #include <cctype>
@@ -321,6 +322,47 @@ std::size_t Retention::Sweep(std::int64_t now_ms) {
         }
     }
     return ended;
+}
+
+std::size_t Retention::SweepUploads(std::int64_t now_ms,
+                                    const std::function<bool(const std::string& id)>& claim,
+                                    const std::function<void(const std::string& id)>& release) {
+    const std::int64_t ttl = options_.upload_ttl_ms;
+    if (ttl <= 0 || store_.data_dir().empty()) return 0;
+    // The last write of a part file, Unix ms (nullopt: gone).
+    const auto last_write_ms = [](const std::string& path) -> std::optional<std::int64_t> {
+        struct stat st {};
+        if (::stat(path.c_str(), &st) != 0) return std::nullopt;
+        return static_cast<std::int64_t>(st.st_mtim.tv_sec) * 1000 + st.st_mtim.tv_nsec / 1000000;
+    };
+    std::vector<std::string> stale;
+    std::error_code ec;
+    for (fs::directory_iterator it(store_.data_dir() + "/uploads", ec), end; !ec && it != end;
+         it.increment(ec)) {
+        const std::string name = it->path().filename().string();
+        if (!name.ends_with(".part") || name.size() == 5) continue;
+        const std::optional<std::int64_t> t = last_write_ms(it->path().string());
+        if (t && now_ms - *t > ttl) stale.push_back(name.substr(0, name.size() - 5));
+    }
+    std::size_t removed = 0;
+    for (const std::string& id : stale) {
+        if (!claim(id)) continue;  // an upload call is writing it
+        const std::string path = store_.UploadPath(id);
+        // Checked again under the claim: a call may have written to it since the listing.
+        const std::optional<std::int64_t> t = last_write_ms(path);
+        std::error_code sec;
+        const std::uint64_t size = t ? fs::file_size(path, sec) : 0;
+        if (t && now_ms - *t > ttl && !sec && fs::remove(path, sec)) {
+            Release(size);
+            spdlog::info("retention: removed the part file of upload {} ({} bytes): not written to "
+                         "for longer than --upload-ttl {}",
+                         id, size, FormatDurationMs(ttl));
+            if (hook_) hook_("upload", "ttl", size);
+            ++removed;
+        }
+        release(id);
+    }
+    return removed;
 }
 
 std::optional<std::string> Retention::EvictedMessage(const std::string& key,

@@ -46,6 +46,12 @@ struct RetentionOptions {
     std::int64_t default_ttl_ms = 0;
     /// Per-tenant time-to-live overriding the default (0 = keep forever for that tenant).
     std::map<std::string, std::int64_t> tenant_ttl_ms;
+    /// Time-to-live of an unfinished upload's part file since its last write, ms
+    /// (`--upload-ttl`): an upload abandoned for longer must start again; 0 = keep part files
+    /// until their upload finishes.
+    std::int64_t upload_ttl_ms = kDefaultUploadTtlMs;
+    /// One day: a resumable upload survives a night's interruption.
+    static constexpr std::int64_t kDefaultUploadTtlMs = 24LL * 3600 * 1000;
 };
 
 /// Parses a duration: a number with a unit, "90s", "15m", "12h", "7d" (also "500ms"); "0" = none.
@@ -103,6 +109,15 @@ class Retention {
     /// Applies the time-to-lives at `now_ms`: returns how many results and cloud ownerships
     /// ended. Also re-reads the usage table (other processes of a shared store change it).
     std::size_t Sweep(std::int64_t now_ms);
+
+    /// Removes the part files of unfinished uploads (`<data dir>/uploads/<id>.part`) that were
+    /// not written to for longer than RetentionOptions::upload_ttl_ms at `now_ms`, giving back
+    /// their bytes. Each is removed only while `claim(id)` holds its upload id (false: an upload
+    /// call has it, and it is kept), then `release(id)`; an upload of that id afterwards starts
+    /// from byte 0. Returns how many part files went; 0 when upload_ttl_ms is 0.
+    std::size_t SweepUploads(std::int64_t now_ms,
+                             const std::function<bool(const std::string& id)>& claim,
+                             const std::function<void(const std::string& id)>& release);
 
     /// The message for a blob that is gone because it was evicted for `tenant` (any tenant when
     /// null): "<what> was evicted at <UTC time> (<reason>)"; nullopt when it was not evicted.
