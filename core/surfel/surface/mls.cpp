@@ -11,6 +11,7 @@
 
 #include "surfel/base/error.h"
 #include "surfel/base/validate.h"
+#include "surfel/surface/fit_kernels.h"
 #include "surfel/surface/local_analysis.h"
 #include "surfel/surface/poly_fit.h"
 #include "surfel/spatial/uniform_grid.h"
@@ -66,6 +67,9 @@ struct MlsSurface::Impl {
     SamplingDensity density;  // only for adaptive h
     std::unique_ptr<UniformGrid> grid;  // fixed h: neighbours within cutoff * h, cell = cutoff * h
     std::optional<MlsScaleChoice> choice;  // the noise rule's, when it chose h
+    // The fit's inner loops (weights, moments, local coordinates, normal equations): the
+    // render's kernels, AVX2 where the CPU has it (fit_kernels.h).
+    const fit_kernels::Kernels* kernels = &fit_kernels::Best();
 
     Impl(const PointCloud& c, const KdTree& t, const MlsOptions& o) : cloud(c), tree(t), opt(o) {}
 
@@ -82,6 +86,16 @@ struct MlsSurface::Impl {
             es += w * density.spacing[nb.index];
         }
         return static_cast<float>(opt.h * (es / ws) / density.median_spacing);
+    }
+
+    // nb.Weights(h) and nb.WeightsAround(c, h) (poly_fit.h), through the kernels: the same bits.
+    void Weights(NeighborBatch& nb, double h) const {
+        kernels->gauss_weights(nb.d2.data(), static_cast<float>(1.0 / (h * h)), nb.w.data(), nb.size());
+    }
+    void WeightsAround(NeighborBatch& nb, const Vec3d& c, double h) const {
+        kernels->squared_distances_around(nb.x.data(), nb.y.data(), nb.z.data(), nb.size(), c.x(), c.y(), c.z(),
+                                          nb.d2.data());
+        Weights(nb, h);
     }
 
     std::optional<MlsPoint> Project(const Vec3f& xf, std::vector<Neighbor>& nbrs, FitStats* stats = nullptr,
@@ -111,9 +125,11 @@ struct MlsSurface::Impl {
         for (; it < opt.max_iterations; ++it) {
             // Reference plane (notes 1.3): weighted centroid and covariance around q, in one pass
             // over the first and second moments about x.
-            if (it == 0) nb.Weights(h);  // centred at x: the distances of the gather
-            else nb.WeightsAround(q, h);
-            const WeightedMoments wm = WeightedMoments::Of(nb);
+            if (it == 0) Weights(nb, h);  // centred at x: the distances of the gather
+            else WeightsAround(nb, q, h);
+            double mom[10];
+            kernels->moments(nb.x.data(), nb.y.data(), nb.z.data(), nb.w.data(), m, mom);
+            const WeightedMoments wm{mom[0], mom[1], mom[2], mom[3], mom[4], mom[5], mom[6], mom[7], mom[8], mom[9]};
             if (!(wm.w > 1e-12)) return std::nullopt;
             const Vec3d c = Vec3d(wm.x, wm.y, wm.z) / wm.w;
             Eigen::Matrix3d C = wm.Second();
@@ -136,10 +152,14 @@ struct MlsSurface::Impl {
         // Polynomial over the plane, weights centred at q. Once converged, the last iteration's
         // weights are those (centred within tolerance * h of q) and are reused.
         const LocalFrame frame = LocalFrame::FromNormal(q, n);
-        if (!converged) nb.WeightsAround(q, h);
-        nb.ToLocal(q, frame.u, frame.v, frame.n);
+        if (!converged) WeightsAround(nb, q, h);
+        const double f[12] = {q.x(),       q.y(),       q.z(),       frame.u.x(), frame.u.y(), frame.u.z(),
+                              frame.v.x(), frame.v.y(), frame.v.z(), frame.n.x(), frame.n.y(), frame.n.z()};
+        kernels->to_local(nb.x.data(), nb.y.data(), nb.z.data(), m, f, nb.lx.data(), nb.ly.data(), nb.lz.data());
         PolyFit fit(opt.degree, h);
-        fit.AddBatch(nb.lx.data(), nb.ly.data(), nb.lz.data(), nb.w.data(), m);
+        double sums[21];
+        kernels->poly_sums(nb.lx.data(), nb.ly.data(), nb.lz.data(), nb.w.data(), m, fit.inv_h(), sums);
+        fit.AddSums(sums);
         PolyCoeffs g;
         if (!fit.Solve(&g)) return std::nullopt;
         if (stats) *stats = ComputeFitStats(nb, opt.degree, h, g);
