@@ -84,7 +84,8 @@ std::atomic<std::uint64_t> next_surface_id{1};
 // (in units of h) of ProjectAll's visiting order.
 // Measured on bunny_scan (surfel project, callgrind, whole process): margin 0.5 / 1 / 2 / 3 h
 // with cells of 1 h: 2.01 / 1.85 / 1.80 / 1.81 G instructions (no superset: 1.90 G); cells of
-// 0.5 / 2 h change it by under 0.5 % at margin 2.
+// 0.5 / 2 h change it by under 0.5 % at margin 2. A margin of 0.5 / 0.67 / 1 x the radius
+// instead was no better at cutoff 3, 2 (h / 2) or 1.5 (bench/README.md).
 constexpr float kSupersetMargin = 2.0f;
 constexpr float kOrderCell = 1.0f;
 
