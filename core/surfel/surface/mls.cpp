@@ -142,6 +142,7 @@ struct MlsSurface::Impl {
     MlsOptions opt;
     SamplingDensity density;  // only for adaptive h
     std::unique_ptr<UniformGrid> grid;  // fixed h: neighbours within cutoff * h, cell = cutoff * h
+    BoundingBox box;                    // of the cloud, when the grid was built
     std::optional<MlsScaleChoice> choice;  // the noise rule's, when it chose h
     // The fit's inner loops (weights, moments, local coordinates, normal equations): the
     // render's kernels, AVX2 where the CPU has it (fit_kernels.h).
@@ -220,28 +221,35 @@ struct MlsSurface::Impl {
         std::vector<std::uint32_t> order(points.size());
         std::iota(order.begin(), order.end(), 0u);
         if (!grid || !grid->dense() || points.empty()) return order;
-        Vec3f lo = points[0];
-        for (const Vec3f& p : points) lo = lo.cwiseMin(p);
+        const Vec3f lo = box.min;  // the grid's points; queries outside clamp to its faces
         const float inv = 1.0f / (kOrderCell * opt.h);
+        // A cell coordinate in 0..2^21 - 1 (non-finite and outside values clamp: order only).
+        const auto cell = [&](float v) {
+            const float c = v * inv;
+            return c > 0.0f ? static_cast<std::uint32_t>(std::min(c, float(0x1fffff))) : 0u;
+        };
         std::vector<std::uint64_t> key(points.size());
         for (std::size_t i = 0; i < points.size(); ++i) {
-            const Vec3f c = ((points[i] - lo) * inv).cwiseMin(float(0x1fffff));
-            key[i] = Spread3(std::uint32_t(c.x())) << 2 | Spread3(std::uint32_t(c.y())) << 1 | Spread3(std::uint32_t(c.z()));
+            const Vec3f d = points[i] - lo;
+            key[i] = Spread3(cell(d.x())) << 2 | Spread3(cell(d.y())) << 1 | Spread3(cell(d.z()));
         }
         std::sort(order.begin(), order.end(),
                   [&](std::uint32_t a, std::uint32_t b) { return key[a] < key[b] || (key[a] == key[b] && a < b); });
         return order;
     }
 
+    // `superset`: gather through the thread's superset (ProjectAll, whose visiting order keeps
+    // consecutive points close); lone projections (booleans, patches) walk the grid, where a
+    // refill at radius + 2h would cost more than it saves.
     std::optional<MlsPoint> Project(const Vec3f& xf, std::vector<Neighbor>& nbrs, FitStats* stats = nullptr,
-                                    MlsPatch* patch = nullptr) const {
+                                    MlsPatch* patch = nullptr, bool superset = false) const {
         const float h = LocalH(xf, nbrs);
         const Vec3d x = xf.cast<double>();
         // Neighbours relative to x (small, well-conditioned numbers), as arrays for the
         // vectorised kernels.
         thread_local NeighborBatch nb;
         nb.clear();
-        if (grid && grid->dense()) {
+        if (superset && grid && grid->dense()) {
             GatherFromSuperset(xf, opt.cutoff * h, h, nb);
         } else if (grid) {
             const float radius = opt.cutoff * h;
@@ -429,8 +437,10 @@ MlsSurface::MlsSurface(const PointCloud& cloud, const KdTree& tree, const MlsOpt
     if (!options.adaptive) {
         const BoundingBox box = cloud.Bounds();
         const float cell = impl_->opt.cutoff * impl_->opt.h;
-        if (!box.empty() && (box.Extent() / cell).maxCoeff() < float(1 << 20))
+        if (!box.empty() && (box.Extent() / cell).maxCoeff() < float(1 << 20)) {
             impl_->grid = std::make_unique<UniformGrid>(cloud.positions, cell);
+            impl_->box = box;
+        }
     }
 }
 
@@ -476,7 +486,7 @@ MlsSurface::Batch MlsSurface::ProjectAll(std::span<const Vec3f> points, const Pr
         std::vector<Neighbor> buf;
         for (std::size_t k = r.begin(); k != r.end(); ++k) {
             const std::size_t i = order[k];
-            auto p = impl_->Project(points[i], buf);
+            auto p = impl_->Project(points[i], buf, nullptr, nullptr, /*superset=*/true);
             if (p) {
                 b.positions[i] = p->position;
                 b.normals[i] = p->normal;

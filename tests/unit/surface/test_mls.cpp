@@ -190,8 +190,8 @@ TEST(MlsOptions, DefaultsAndLimitsAreValid) {
 }
 
 // ProjectAll visits its points in a spatial order and gathers neighbours from a per-thread
-// superset of the last gather's ball: every point must still get exactly what a lone Project of
-// that point gives (the same neighbours in the same order), whatever came before it.
+// superset of the last gather's ball; a lone Project walks the grid. Every point must get the
+// same bits both ways (the same neighbours in the same order), whatever came before it.
 TEST(Mls, ProjectAllGivesEachPointsOwnProjectionToTheBit) {
     ShapeOptions o;
     o.points = 6000;
