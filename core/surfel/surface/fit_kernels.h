@@ -34,11 +34,22 @@ using SquaredDistancesFn = void (*)(const float* x, const float* y, const float*
 /// poly_fit.h's GaussWeights: w[i] = exp(-d2[i] * inv_h2) (elementwise: the same bits in both builds).
 using GaussWeightsFn = void (*)(const float* d2, float inv_h2, float* w, std::size_t n);
 
+/// poly_fit.h's NeighborBatch::WeightsAround distances: out[j] = float(|(X, Y, Z)[j] - c|^2) with
+/// the differences and squares in double (elementwise: the same bits in both builds).
+using SquaredDistancesAroundFn = void (*)(const float* x, const float* y, const float* z, std::size_t n, double cx,
+                                          double cy, double cz, float* out);
+/// poly_fit.h's NeighborBatch::ToLocal: (lx, ly, lz)[j] = ((X, Y, Z)[j] - o) . (u, v, nrm) in double,
+/// frame = {o, u, v, nrm} as 12 doubles (elementwise: the same bits in both builds).
+using ToLocalFn = void (*)(const float* x, const float* y, const float* z, std::size_t n, const double* frame,
+                           double* lx, double* ly, double* lz);
+
 struct Kernels {
     MomentsFn moments;
     PolySumsFn poly_sums;
     SquaredDistancesFn squared_distances;
     GaussWeightsFn gauss_weights;
+    SquaredDistancesAroundFn squared_distances_around;
+    ToLocalFn to_local;
     const char* isa;  ///< "avx2" or "baseline"
 };
 

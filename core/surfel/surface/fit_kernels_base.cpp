@@ -16,17 +16,24 @@ void PolySums(const double* x, const double* y, const double* z, const float* w,
 void SquaredDistances(const float* x, const float* y, const float* z, std::size_t n, float ox, float oy, float oz,
                       float* out);
 void GaussWeights(const float* d2, float inv_h2, float* w, std::size_t n);
+void SquaredDistancesAround(const float* x, const float* y, const float* z, std::size_t n, double cx, double cy,
+                            double cz, float* out);
+void ToLocal(const float* x, const float* y, const float* z, std::size_t n, const double* f, double* lx, double* ly,
+             double* lz);
 }  // namespace avx2
 
 const Kernels& Baseline() {
     static const Kernels k{&baseline::Moments, &baseline::PolySums, &baseline::SquaredDistances,
-                           &baseline::GaussWeights, "baseline"};
+                           &baseline::GaussWeights, &baseline::SquaredDistancesAround, &baseline::ToLocal,
+                           "baseline"};
     return k;
 }
 
 const Kernels& Best() {
     static const Kernels& best = []() -> const Kernels& {
-        static const Kernels k{&avx2::Moments, &avx2::PolySums, &avx2::SquaredDistances, &avx2::GaussWeights,
+        static const Kernels k{&avx2::Moments,      &avx2::PolySums,
+                               &avx2::SquaredDistances, &avx2::GaussWeights,
+                               &avx2::SquaredDistancesAround, &avx2::ToLocal,
                                "avx2"};
         const char* force = std::getenv("SURFEL_FIT_KERNELS");
         if (force && std::strcmp(force, "baseline") == 0) return Baseline();

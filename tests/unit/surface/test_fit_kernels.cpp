@@ -9,6 +9,7 @@
 #include <vector>
 
 #include "surfel/surface/fit_kernels.h"
+#include "surfel/surface/poly_fit.h"
 
 namespace surfel {
 namespace {
@@ -78,6 +79,37 @@ TEST(FitKernels, BothBuildsGiveTheSumsToRounding) {
         }
     }
     EXPECT_TRUE(std::string(fit_kernels::Best().isa) == "avx2" || std::string(fit_kernels::Best().isa) == "baseline");
+}
+
+// The elementwise kernels MLS uses in place of poly_fit.h's NeighborBatch::WeightsAround and
+// ToLocal: the same bits as those in both builds (no sums, no reordering; products rounded alike).
+TEST(FitKernels, ElementwiseKernelsGiveNeighborBatchsBits) {
+    for (const std::size_t n : {std::size_t(1), std::size_t(5), std::size_t(110), std::size_t(1001)}) {
+        const Samples s = Make(n, 5 + unsigned(n));
+        NeighborBatch nb;
+        for (std::size_t i = 0; i < n; ++i) nb.Push(std::uint32_t(i), Vec3f(s.fx[i], s.fy[i], s.fz[i]));
+        const Vec3d c(1e-3, -2e-3, 4e-4), u = Vec3d(1, 2, 3).normalized(), v = u.cross(Vec3d::UnitZ()).normalized(),
+                    nrm = u.cross(v);
+        const double h = 0.0031;
+        nb.WeightsAround(c, h);
+        const std::vector<float> d2(nb.d2.begin(), nb.d2.begin() + n), w(nb.w.begin(), nb.w.begin() + n);
+        nb.ToLocal(c, u, v, nrm);
+        const double f[12] = {c.x(), c.y(), c.z(), u.x(), u.y(), u.z(), v.x(), v.y(), v.z(), nrm.x(), nrm.y(), nrm.z()};
+        for (const fit_kernels::Kernels* k : {&fit_kernels::Baseline(), &fit_kernels::Best()}) {
+            std::vector<float> kd(n), kw(n);
+            std::vector<double> lx(n), ly(n), lz(n);
+            k->squared_distances_around(s.fx.data(), s.fy.data(), s.fz.data(), n, c.x(), c.y(), c.z(), kd.data());
+            k->gauss_weights(kd.data(), static_cast<float>(1.0 / (h * h)), kw.data(), n);
+            k->to_local(s.fx.data(), s.fy.data(), s.fz.data(), n, f, lx.data(), ly.data(), lz.data());
+            for (std::size_t i = 0; i < n; ++i) {
+                ASSERT_EQ(kd[i], d2[i]) << k->isa << " i = " << i;
+                ASSERT_EQ(kw[i], w[i]) << k->isa << " i = " << i;
+                ASSERT_EQ(lx[i], nb.lx[i]) << k->isa << " i = " << i;
+                ASSERT_EQ(ly[i], nb.ly[i]) << k->isa << " i = " << i;
+                ASSERT_EQ(lz[i], nb.lz[i]) << k->isa << " i = " << i;
+            }
+        }
+    }
 }
 
 }  // namespace

@@ -189,5 +189,33 @@ TEST(MlsOptions, DefaultsAndLimitsAreValid) {
                         .Validate());
 }
 
+// ProjectAll visits its points in a spatial order and gathers neighbours from a per-thread
+// superset of the last gather's ball; a lone Project walks the grid. Every point must get the
+// same bits both ways (the same neighbours in the same order), whatever came before it.
+TEST(Mls, ProjectAllGivesEachPointsOwnProjectionToTheBit) {
+    ShapeOptions o;
+    o.points = 6000;
+    o.noise = 0.005;
+    const PointCloud c = SampleShape(Shape::kTorus, o);
+    KdTree tree(c.positions);
+    const MlsSurface mls(c, tree);
+    // Queries off the samples too, in a scrambled order, with repeats.
+    std::vector<Vec3f> queries;
+    for (std::size_t i = 0; i < c.size(); i += 3) queries.push_back(c.positions[(i * 7919) % c.size()] * 1.01f);
+    queries.push_back(queries.front());
+    const auto b = mls.ProjectAll(queries);
+    ASSERT_EQ(b.positions.size(), queries.size());
+    std::size_t projected = 0;
+    for (std::size_t i = queries.size(); i-- > 0;) {  // backwards: a different superset history
+        const auto p = mls.Project(queries[i]);
+        ASSERT_EQ(p.has_value(), b.normals[i] != Vec3f::Zero()) << i;
+        if (!p) continue;
+        ++projected;
+        ASSERT_EQ(p->position, b.positions[i]) << i;
+        ASSERT_EQ(p->normal, b.normals[i]) << i;
+    }
+    EXPECT_GT(projected, queries.size() * 9 / 10);
+}
+
 }  // namespace
 }  // namespace surfel
