@@ -27,6 +27,32 @@ constexpr int kWalkNeighbors = 8;
 constexpr double kSkin = 0.5;
 }  // namespace
 
+std::vector<double> CommonScaleVariation(const KdTree& tree, std::span<const float> variation) {
+    const std::size_t n = tree.size();
+    SURFEL_CHECK(variation.size() == n && n >= 2, "variation = " << variation.size() << ", n = " << n);
+    const int k = std::min<int>(kVariationNeighbors, static_cast<int>(n) - 1);
+    const KnnTable knn = tree.KnnAll(k);
+    // sigma_n / r_n^2: on a smooth surface lambda_0 ~ r_n^4 (curvature)^2 and the tangent
+    // variation ~ r_n^2, so this is sigma_n at one radius for every point, free of the k-nearest
+    // radius's sampling noise.
+    std::vector<double> at_scale(n);
+    for (std::size_t i = 0; i < n; ++i)
+        at_scale[i] = static_cast<double>(variation[i]) / std::max(1e-30, static_cast<double>(knn.Dist2(i)[k - 1]));
+    // Averaged over the point and its n-neighbourhood: the smoothing a larger neighbourhood
+    // gives (notes 1.2, fig. 1.2), at the cost of one pass.
+    std::vector<double> out(n);
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 2048), [&](const auto& range) {
+        for (std::size_t i = range.begin(); i != range.end(); ++i) {
+            double sum = at_scale[i];
+            int count = 1;
+            for (const std::uint32_t j : knn.Row(i))
+                if (j != UINT32_MAX) sum += at_scale[j], ++count;
+            out[i] = sum / count;
+        }
+    });
+    return out;
+}
+
 ParticleEngine::ParticleEngine(const PointCloud& input, std::span<const Vec3f> normals,
                                std::span<const float> variation, bool adaptive)
     : input_(input), normals_(normals) {
@@ -42,11 +68,12 @@ ParticleEngine::ParticleEngine(const PointCloud& input, std::span<const Vec3f> n
     // relative to the median and clamped to [1/2, 2] so flat regions keep some particles.
     scale_.assign(n, 1.0);
     if (adaptive && !variation.empty()) {
-        std::vector<float> sorted(variation.begin(), variation.end());
+        SURFEL_CHECK(variation.size() == n, "variation = " << variation.size() << ", n = " << n);
+        const std::vector<double> v = CommonScaleVariation(*tree_, variation);
+        std::vector<double> sorted(v);
         std::nth_element(sorted.begin(), sorted.begin() + static_cast<std::ptrdiff_t>(n / 2), sorted.end());
-        const double median = std::max(1e-12, static_cast<double>(sorted[n / 2]));
-        for (std::size_t i = 0; i < n; ++i)
-            scale_[i] = std::clamp(median / std::max(1e-12, static_cast<double>(variation[i])), 0.5, 2.0);
+        const double median = std::max(1e-30, sorted[n / 2]);
+        for (std::size_t i = 0; i < n; ++i) scale_[i] = std::clamp(median / std::max(1e-30, v[i]), 0.5, 2.0);
     }
     // Outliers (isolated samples: tiny density, so a huge area) would draw particles away from
     // the surface: an area counts at most 4x the median, a reach (below) at most 2x the median.

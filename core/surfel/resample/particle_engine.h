@@ -34,6 +34,18 @@ private:
 
 }  // namespace detail
 
+/// Neighbourhood size n of the surface variation sigma_n that the adaptive engine reads (the
+/// k of EstimateNormals' default).
+inline constexpr int kVariationNeighbors = 16;
+
+/// The curvature measure of the adaptive particle engine (notes 2.3.4 with 1.2): the surface
+/// variation sigma_n of each point's n = kVariationNeighbors neighbourhood (`variation`, as
+/// EstimateNormals returns it) put at one scale for every point, sigma_n / r_n^2 (r_n the
+/// distance to the n-th neighbour; on a smooth surface sigma_n grows with r_n^2, so a random
+/// sampling's uneven r_n would otherwise make sigma_n noisy), then averaged over the point and its
+/// n neighbours. Units 1 / length^2; only ratios matter. Needs variation.size() == tree.size() >= 2.
+std::vector<double> CommonScaleVariation(const KdTree& tree, std::span<const float> variation);
+
 /// One run of the particle engine.
 struct ParticleParams {
     std::size_t count = 0;    ///< m, the particles that move (>= 1).
@@ -74,9 +86,10 @@ public:
     static constexpr double kRepulsionGain = 0.3;
     static constexpr double kMaxStep = 0.5;
 
-    /// `normals`: one oriented unit normal per input point. `variation`: sigma_n per point
-    /// (notes 1.2), used when `adaptive` (2.3.4: repulsion radius scaled by 1 / sigma_n relative
-    /// to the median, clamped to [1/2, 2]); may be empty otherwise. Needs at least 2 points.
+    /// `normals`: one oriented unit normal per input point. `variation`: sigma_n per point of its
+    /// kVariationNeighbors-neighbourhood (notes 1.2), used when `adaptive` (2.3.4: repulsion
+    /// radius scaled by 1 / sigma relative to the median, clamped to [1/2, 2], with sigma the
+    /// CommonScaleVariation of `variation`); may be empty otherwise. Needs at least 2 points.
     ParticleEngine(const PointCloud& input, std::span<const Vec3f> normals, std::span<const float> variation,
                    bool adaptive);
     ~ParticleEngine();

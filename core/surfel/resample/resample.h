@@ -77,7 +77,9 @@ struct ResampleOptions {
     /// tangent ellipse's main axis is at most kSplitSlack x this.
     double spacing = 0.0;
     /// Curvature-adaptive (2.3.4): repulsion radius scaled by 1 / sigma_n relative to the
-    /// median, clamped to [1/2, 2], so up to 16x the density where the surface bends most.
+    /// median, clamped to [1/2, 2], so up to 16x the density where the surface bends most;
+    /// sigma_n of the 16 nearest neighbours, put at one scale and averaged over them
+    /// (CommonScaleVariation in particle_engine.h).
     /// With the mls method: adaptive MLS (notes 1.3), h(x) = h eta(x) / median(eta).
     bool adaptive = false;
     /// Keep every input point unchanged (with its attributes) and only add points: the input
