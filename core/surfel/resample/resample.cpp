@@ -186,6 +186,7 @@ void RunParticles(const PointCloud& input, std::span<const Vec3f> normals, std::
     ParticleParams params;
     params.seed = options.seed;
     params.iterations = options.iterations;
+    params.gain = kResampleGain;
     params.fixed_input = options.keep_input;
     params.tolerance = options.relax_tolerance;
     params.cached_fits = options.cached_fits;

@@ -139,7 +139,10 @@ TEST(Resample, FastVariantsStayOnTheSphereAndEven) {
     ResampleOptions o = Count(4 * kInput);
     o.spread_disk = true;
     o.cached_fits = true;
-    o.relax_tolerance = 0.006;
+    o.iterations = 60;
+    // At kResampleGain the mean step settles near 0.02 r0 and stays there (the particles bounce
+    // within reach of each other), so only a tolerance above that stops early: here after 12 steps.
+    o.relax_tolerance = 0.025;
     const ResampleResult r = Resample(input, o);
     ASSERT_EQ(r.cloud.size(), 4 * kInput);
     double worst = 0.0;
