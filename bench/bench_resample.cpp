@@ -8,7 +8,9 @@
 // environment: SURFEL_BENCH_ITERATIONS (iterations), SURFEL_BENCH_TOLERANCE (relax_tolerance),
 // SURFEL_BENCH_SPREAD=disk|jitter (spread_disk), SURFEL_BENCH_CACHED=0|1 (cached_fits).
 // Every side reports time_ms (wall) and cpu_ms (user + system CPU of all threads) of its
-// resampling alone; on a loaded machine compare cpu_ms.
+// resampling alone; on a loaded machine compare cpu_ms. SURFEL_BENCH_BREAKDOWN=1 (every side,
+// bench_resample_pcl too) adds the mean distance to the mesh and the share of the output per
+// quartile of the input's sampling spacing around each output point.
 #include <cstdlib>
 
 #include "bench_resample_common.h"
