@@ -292,11 +292,11 @@ void ParticleEngine::Run(const ParticleParams& params, std::vector<Vec3f>& posit
     std::vector<std::uint8_t> fast(m, 0);
     std::vector<std::uint32_t> fast_ids, extra_first(m + 1), extra;
     std::vector<std::vector<std::uint32_t>> fast_nbrs;
+    // Above kDefaultParticleGain the particles do not come to rest (at 0.5 on the sphere the mean
+    // step stays ~2 % of r0: they bounce within their neighbours' reach), yet end more evenly
+    // spaced; relax_tolerance then stops only above that level.
+    const float gain = static_cast<float>(params.gain);
     for (int iter = 0; iter < params.iterations; ++iter) {
-        // Above kDefaultParticleGain the particles do not come to rest (at 0.5 on the sphere
-        // the mean step stays ~2 % of r0: they bounce within their neighbours' reach), yet end
-        // more evenly spaced; relax_tolerance then stops only above that level.
-        const float gain = static_cast<float>(params.gain);
         // The lists hold every neighbour within radius[a] of a particle a for the pairs of
         // "slow" particles, those that moved less than half the smallest slack
         // (list_radius - radius) since the lists were built. The few "fast" ones (a particle
