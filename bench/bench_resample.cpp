@@ -7,6 +7,10 @@
 // For measuring the particle engine's variants, side `ours` reads ResampleOptions from the
 // environment: SURFEL_BENCH_ITERATIONS (iterations), SURFEL_BENCH_TOLERANCE (relax_tolerance),
 // SURFEL_BENCH_SPREAD=disk|jitter (spread_disk), SURFEL_BENCH_CACHED=0|1 (cached_fits).
+// Every side reports time_ms (wall) and cpu_ms (user + system CPU of all threads) of its
+// resampling alone; on a loaded machine compare cpu_ms. SURFEL_BENCH_BREAKDOWN=1 (every side,
+// bench_resample_pcl too) adds the mean distance to the mesh and the share of the output per
+// quartile of the input's sampling spacing around each output point.
 #include <cstdlib>
 
 #include "bench_resample_common.h"
@@ -35,10 +39,12 @@ nlohmann::json Ours(const ResampleCase& c) {
     if (const char* v = std::getenv("SURFEL_BENCH_TOLERANCE")) o.relax_tolerance = std::atof(v);
     if (const char* v = std::getenv("SURFEL_BENCH_CACHED")) o.cached_fits = std::atoi(v) != 0;
     if (const char* v = std::getenv("SURFEL_BENCH_SPREAD")) o.spread_disk = std::string(v) == "disk";
+    const double c0 = ProcessCpuMs();
     const auto t0 = Clock::now();
     const ResampleResult r = Resample(input, o);
     const auto t1 = Clock::now();
     j["time_ms"] = Ms(t0, t1);
+    j["cpu_ms"] = ProcessCpuMs() - c0;
     j["iterations"] = r.report.iterations;
     j["stages"] = {{"resample", Ms(t0, t1)}};
     j["peak_rss_mb"] = PeakResidentMiB();
@@ -75,6 +81,7 @@ nlohmann::json Ear(const ResampleCase& c) {
     for (std::size_t i = 0; i < d.size(); ++i)
         pts.emplace_back(Point(d.positions[i].x(), d.positions[i].y(), d.positions[i].z()),
                          Vector(normals.normals[i].x(), normals.normals[i].y(), normals.normals[i].z()));
+    const double c2 = ProcessCpuMs();
     const auto t2 = Clock::now();
     CGAL::edge_aware_upsample_point_set<Concurrency>(
         pts, std::back_inserter(pts),
@@ -84,6 +91,7 @@ nlohmann::json Ear(const ResampleCase& c) {
             .number_of_output_points(c.target()));
     const auto t3 = Clock::now();
     j["time_ms"] = Ms(t2, t3);
+    j["cpu_ms"] = ProcessCpuMs() - c2;
     j["stages"] = {{"our_normals", Ms(t0, t1)}, {"ear", Ms(t2, t3)}};
     j["peak_rss_mb"] = PeakResidentMiB();
     MeasureResample(c, FromCgal(pts), j);
@@ -97,11 +105,13 @@ nlohmann::json Wlop(const ResampleCase& c) {
     std::vector<Point> input;
     for (const auto& p : Dataset(c.dataset).positions) input.emplace_back(p.x(), p.y(), p.z());
     std::vector<Point> out;
+    const double c0 = ProcessCpuMs();
     const auto t0 = Clock::now();
     CGAL::wlop_simplify_and_regularize_point_set<Concurrency>(
         input, std::back_inserter(out), CGAL::parameters::select_percentage(100.0 * c.ratio));
     const auto t1 = Clock::now();
     j["time_ms"] = Ms(t0, t1);
+    j["cpu_ms"] = ProcessCpuMs() - c0;
     j["stages"] = {{"wlop", Ms(t0, t1)}};
     j["peak_rss_mb"] = PeakResidentMiB();
     std::vector<Vec3f> pts;

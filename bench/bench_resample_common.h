@@ -12,13 +12,25 @@
 #include <string>
 #include <vector>
 
+#include <sys/resource.h>
+
 #include "bench_common.h"
+#include "surfel/surface/local_analysis.h"
 
 namespace surfel::bench {
 
 using Clock = std::chrono::steady_clock;
 inline double Ms(Clock::time_point a, Clock::time_point b) {
     return std::chrono::duration<double, std::milli>(b - a).count();
+}
+
+/// CPU time (user + system, every thread) of this process so far, ms: on a loaded machine the
+/// difference around a stage measures its work where wall time does not.
+inline double ProcessCpuMs() {
+    rusage u{};
+    getrusage(RUSAGE_SELF, &u);
+    const auto ms = [](const timeval& t) { return t.tv_sec * 1e3 + t.tv_usec * 1e-3; };
+    return ms(u.ru_utime) + ms(u.ru_stime);
 }
 
 /// A case: a dataset of ../shared/data and the output count as a ratio of its size.
@@ -103,6 +115,27 @@ inline void MeasureResample(const ResampleCase& c, const std::vector<Vec3f>& out
     j["mesh_mean_rel"] = s.mean / diag;
     j["mesh_rms_rel"] = s.rms / diag;
     j["mesh_max_rel"] = s.max / diag;
+    if (std::getenv("SURFEL_BENCH_BREAKDOWN")) {
+        // Where the distance comes from: output points grouped by the sampling spacing eta of
+        // their closest input point, in quartiles of the input's eta (1 = densest input).
+        const PointCloud& in = Dataset(c.dataset);
+        const KdTree in_tree(in.positions);
+        const std::vector<float> eta = ComputeSamplingDensity(in_tree).spacing;
+        std::vector<float> sorted(eta);
+        std::sort(sorted.begin(), sorted.end());
+        const float q[3] = {sorted[sorted.size() / 4], sorted[sorted.size() / 2], sorted[sorted.size() * 3 / 4]};
+        double dsum[4] = {}, dcount[4] = {};
+        for (const auto& p : out) {
+            const float e = eta[in_tree.Nearest(p).index];
+            const int b = (e > q[0]) + (e > q[1]) + (e > q[2]);
+            dsum[b] += MeshFor(c.dataset).Closest(p).first;
+            dcount[b] += 1;
+        }
+        for (int b = 0; b < 4; ++b) {
+            j["mesh_mean_rel_by_input_eta_quartile"].push_back(dcount[b] ? dsum[b] / dcount[b] / diag : 0.0);
+            j["share_by_input_eta_quartile"].push_back(dcount[b] / double(out.size()));
+        }
+    }
     const std::vector<Vec3f> truth = SampleMesh(Dataset(MeshOf(c.dataset)), 200000);
     std::vector<double> cov;
     cov.reserve(truth.size());

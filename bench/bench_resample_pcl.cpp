@@ -97,10 +97,12 @@ int main(int argc, char** argv) {
         param = p;
     }
     j["param"] = param;
+    const double c0 = ProcessCpuMs();
     const auto t0 = Clock::now();
     const std::vector<Vec3f> pts = Run(c, *mode, param, h);
     const auto t1 = Clock::now();
     j["time_ms"] = Ms(t0, t1);
+    j["cpu_ms"] = ProcessCpuMs() - c0;
     j["stages"] = {{"mls_upsample", Ms(t0, t1)}};
     j["peak_rss_mb"] = PeakResidentMiB();
     MeasureResample(c, pts, j);

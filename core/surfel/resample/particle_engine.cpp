@@ -25,7 +25,35 @@ constexpr int kWalkNeighbors = 8;
 // Verlet lists (Allen & Tildesley): each particle's neighbours within its radius plus a skin of
 // kSkin r0, rebuilt only when some particle may have come within its radius of one not listed.
 constexpr double kSkin = 0.5;
+// Particles per block of the neighbour-list build (each block one output buffer).
+constexpr std::size_t kListBlock = 1024;
 }  // namespace
+
+std::vector<double> CommonScaleVariation(const KdTree& tree, std::span<const float> variation) {
+    const std::size_t n = tree.size();
+    SURFEL_CHECK(variation.size() == n && n >= 2, "variation = " << variation.size() << ", n = " << n);
+    const int k = std::min<int>(kVariationNeighbors, static_cast<int>(n) - 1);
+    const KnnTable knn = tree.KnnAll(k);
+    // sigma_n / r_n^2: on a smooth surface lambda_0 ~ r_n^4 (curvature)^2 and the tangent
+    // variation ~ r_n^2, so this is sigma_n at one radius for every point, free of the k-nearest
+    // radius's sampling noise.
+    std::vector<double> at_scale(n);
+    for (std::size_t i = 0; i < n; ++i)
+        at_scale[i] = static_cast<double>(variation[i]) / std::max(1e-30, static_cast<double>(knn.Dist2(i)[k - 1]));
+    // Averaged over the point and its n-neighbourhood: the smoothing a larger neighbourhood
+    // gives (notes 1.2, fig. 1.2), at the cost of one pass.
+    std::vector<double> out(n);
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 2048), [&](const auto& range) {
+        for (std::size_t i = range.begin(); i != range.end(); ++i) {
+            double sum = at_scale[i];
+            int count = 1;
+            for (const std::uint32_t j : knn.Row(i))
+                if (j != UINT32_MAX) sum += at_scale[j], ++count;
+            out[i] = sum / count;
+        }
+    });
+    return out;
+}
 
 ParticleEngine::ParticleEngine(const PointCloud& input, std::span<const Vec3f> normals,
                                std::span<const float> variation, bool adaptive)
@@ -42,11 +70,12 @@ ParticleEngine::ParticleEngine(const PointCloud& input, std::span<const Vec3f> n
     // relative to the median and clamped to [1/2, 2] so flat regions keep some particles.
     scale_.assign(n, 1.0);
     if (adaptive && !variation.empty()) {
-        std::vector<float> sorted(variation.begin(), variation.end());
+        SURFEL_CHECK(variation.size() == n, "variation = " << variation.size() << ", n = " << n);
+        const std::vector<double> v = CommonScaleVariation(*tree_, variation);
+        std::vector<double> sorted(v);
         std::nth_element(sorted.begin(), sorted.begin() + static_cast<std::ptrdiff_t>(n / 2), sorted.end());
-        const double median = std::max(1e-12, static_cast<double>(sorted[n / 2]));
-        for (std::size_t i = 0; i < n; ++i)
-            scale_[i] = std::clamp(median / std::max(1e-12, static_cast<double>(variation[i])), 0.5, 2.0);
+        const double median = std::max(1e-30, sorted[n / 2]);
+        for (std::size_t i = 0; i < n; ++i) scale_[i] = std::clamp(median / std::max(1e-30, v[i]), 0.5, 2.0);
     }
     // Outliers (isolated samples: tiny density, so a huge area) would draw particles away from
     // the surface: an area counts at most 4x the median, a reach (below) at most 2x the median.
@@ -209,6 +238,7 @@ void ParticleEngine::Run(const ParticleParams& params, std::vector<Vec3f>& posit
     // Verlet lists in CSR form: neighbours of particle p are nbr[first[p] .. first[p + 1]); with
     // fixed input samples, index m + i is sample i.
     std::vector<std::uint32_t> first(m + 1), nbr;
+    std::vector<std::vector<std::uint32_t>> block_nbr;
     std::vector<Vec3f> all;
     if (params.fixed_input) all.resize(m + n);
     for (std::size_t p = 0; p < m; ++p) radius[p] = static_cast<float>(r0 * scale_[home[p]]);
@@ -226,24 +256,32 @@ void ParticleEngine::Run(const ParticleParams& params, std::vector<Vec3f>& posit
         }
         const std::span<const Vec3f> pts = params.fixed_input ? std::span<const Vec3f>(all) : std::span<const Vec3f>(positions);
         const UniformGrid grid(pts, max_list);
-        std::vector<std::uint32_t> count(m);
-        tbb::parallel_for(tbb::blocked_range<std::size_t>(0, m, 512), [&](const auto& range) {
-            for (std::size_t p = range.begin(); p != range.end(); ++p) {
-                std::uint32_t c = 0;
-                grid.ForEachWithin(positions[p], list_radius[p], [&](std::uint32_t j, const Vec3f&, float) { c += j != p; });
-                count[p] = c;
+        // One query per particle into fixed blocks of kListBlock particles (the blocks, not the
+        // threads, fix the layout), then the blocks concatenated in particle order.
+        const std::size_t blocks = (m + kListBlock - 1) / kListBlock;
+        block_nbr.resize(blocks);
+        tbb::parallel_for(tbb::blocked_range<std::size_t>(0, blocks, 1), [&](const auto& range) {
+            for (std::size_t b = range.begin(); b != range.end(); ++b) {
+                std::vector<std::uint32_t>& out = block_nbr[b];
+                out.clear();
+                for (std::size_t p = b * kListBlock; p < std::min(m, (b + 1) * kListBlock); ++p) {
+                    grid.ForEachWithin(positions[p], list_radius[p], [&](std::uint32_t j, const Vec3f&, float) {
+                        if (j != p) out.push_back(j);
+                    });
+                    first[p + 1] = static_cast<std::uint32_t>(out.size());  // within the block, for now
+                }
             }
         });
         first[0] = 0;
-        for (std::size_t p = 0; p < m; ++p) first[p + 1] = first[p] + count[p];
-        nbr.resize(first[m]);
-        tbb::parallel_for(tbb::blocked_range<std::size_t>(0, m, 512), [&](const auto& range) {
-            for (std::size_t p = range.begin(); p != range.end(); ++p) {
-                std::uint32_t k = first[p];
-                grid.ForEachWithin(positions[p], list_radius[p], [&](std::uint32_t j, const Vec3f&, float) {
-                    if (j != p) nbr[k++] = j;
-                });
-            }
+        std::uint32_t base = 0;
+        for (std::size_t b = 0; b < blocks; ++b) {
+            for (std::size_t p = b * kListBlock; p < std::min(m, (b + 1) * kListBlock); ++p) first[p + 1] += base;
+            base += static_cast<std::uint32_t>(block_nbr[b].size());
+        }
+        nbr.resize(base);
+        tbb::parallel_for(tbb::blocked_range<std::size_t>(0, blocks, 1), [&](const auto& range) {
+            for (std::size_t b = range.begin(); b != range.end(); ++b)
+                std::copy(block_nbr[b].begin(), block_nbr[b].end(), nbr.begin() + first[b * kListBlock]);
         });
         built = positions;
         std::fill(moved.begin(), moved.end(), 0.0f);
@@ -254,6 +292,10 @@ void ParticleEngine::Run(const ParticleParams& params, std::vector<Vec3f>& posit
     std::vector<std::uint8_t> fast(m, 0);
     std::vector<std::uint32_t> fast_ids, extra_first(m + 1), extra;
     std::vector<std::vector<std::uint32_t>> fast_nbrs;
+    // Above kDefaultParticleGain the particles do not come to rest (at 0.5 on the sphere the mean
+    // step stays ~2 % of r0: they bounce within their neighbours' reach), yet end more evenly
+    // spaced; relax_tolerance then stops only above that level.
+    const float gain = static_cast<float>(params.gain);
     for (int iter = 0; iter < params.iterations; ++iter) {
         // The lists hold every neighbour within radius[a] of a particle a for the pairs of
         // "slow" particles, those that moved less than half the smallest slack
@@ -281,7 +323,9 @@ void ParticleEngine::Run(const ParticleParams& params, std::vector<Vec3f>& posit
             if (params.fixed_input) std::copy(positions.begin(), positions.end(), all.begin());
             const std::span<const Vec3f> pts =
                 params.fixed_input ? std::span<const Vec3f>(all) : std::span<const Vec3f>(positions);
-            const UniformGrid grid(pts, max_radius);
+            // Cells of the lists' size (max_radius + skin, not max_radius): at the smaller cell
+            // the grid falls back to its hashed layout, whose build is a sort (3x the cost).
+            const UniformGrid grid(pts, max_radius + skin);
             fast_nbrs.assign(fast_ids.size(), {});
             tbb::parallel_for(tbb::blocked_range<std::size_t>(0, fast_ids.size(), 16), [&](const auto& range) {
                 for (std::size_t k = range.begin(); k != range.end(); ++k) {
@@ -324,8 +368,8 @@ void ParticleEngine::Run(const ParticleParams& params, std::vector<Vec3f>& posit
                         if (nbr[k] >= m || !fast[nbr[k]]) push(nbr[k]);
                     for (std::uint32_t k = extra_first[p]; k < extra_first[p + 1]; ++k) push(extra[k]);
                 }
-                // Step: a lone neighbour at distance d moves x by kRepulsionGain (r - d).
-                Vec3f step = force * (static_cast<float>(kRepulsionGain) / r);
+                // Step: a lone neighbour at distance d moves x by params.gain (r - d).
+                Vec3f step = force * (gain / r);
                 const float len = step.norm();
                 const float max_step = static_cast<float>(kMaxStep) * r;
                 if (len > max_step) step *= max_step / len;

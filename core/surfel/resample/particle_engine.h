@@ -34,11 +34,31 @@ private:
 
 }  // namespace detail
 
+/// Neighbourhood size n of the surface variation sigma_n that the adaptive engine reads (the
+/// k of EstimateNormals' default).
+inline constexpr int kVariationNeighbors = 16;
+
+/// The curvature measure of the adaptive particle engine (notes 2.3.4 with 1.2): the surface
+/// variation sigma_n of each point's n = kVariationNeighbors neighbourhood (`variation`, as
+/// EstimateNormals returns it) put at one scale for every point, sigma_n / r_n^2 (r_n the
+/// distance to the n-th neighbour; on a smooth surface sigma_n grows with r_n^2, so a random
+/// sampling's uneven r_n would otherwise make sigma_n noisy), then averaged over the point and its
+/// n neighbours. Units 1 / length^2; only ratios matter. Needs variation.size() == tree.size() >= 2.
+std::vector<double> CommonScaleVariation(const KdTree& tree, std::span<const float> variation);
+
+/// The force constant of eq. 2.2 as a step (ParticleParams::gain), unless a caller sets another.
+inline constexpr double kDefaultParticleGain = 0.3;
+
 /// One run of the particle engine.
 struct ParticleParams {
     std::size_t count = 0;    ///< m, the particles that move (>= 1).
     std::uint64_t seed = 1;   ///< Seeds the spreading (2.3.1) and its tangential jitter.
     int iterations = 40;      ///< Relaxation steps (2.3.2-2.3.3), >= 0.
+    /// The force constant k of eq. 2.2 as a step: a lone neighbour at distance d < r moves a
+    /// particle by gain (r - d). In (0, 1).
+    /// Resampling uses 0.5, which reaches at 20 steps the evenness 0.3 reaches at 40 (and 0.8
+    /// oscillates: NN CV 0.127 at 15 steps on the bunny x4; bench/results-resample.md).
+    double gain = kDefaultParticleGain;
     /// The input samples act as particles that repel but never move (keep-input resampling):
     /// the repulsion radius is then that of count + input size particles.
     bool fixed_input = false;
@@ -71,12 +91,13 @@ public:
     /// The linear repulsion's step (eq. 2.2-2.3): a lone neighbour at distance d < r moves a
     /// particle by kRepulsionGain (r - d), and no step is longer than kMaxStep r. Shared with
     /// the blending of boolean creases (core/surfel/boolean/blend.cpp).
-    static constexpr double kRepulsionGain = 0.3;
+    static constexpr double kRepulsionGain = kDefaultParticleGain;
     static constexpr double kMaxStep = 0.5;
 
-    /// `normals`: one oriented unit normal per input point. `variation`: sigma_n per point
-    /// (notes 1.2), used when `adaptive` (2.3.4: repulsion radius scaled by 1 / sigma_n relative
-    /// to the median, clamped to [1/2, 2]); may be empty otherwise. Needs at least 2 points.
+    /// `normals`: one oriented unit normal per input point. `variation`: sigma_n per point of its
+    /// kVariationNeighbors-neighbourhood (notes 1.2), used when `adaptive` (2.3.4: repulsion
+    /// radius scaled by 1 / sigma relative to the median, clamped to [1/2, 2], with sigma the
+    /// CommonScaleVariation of `variation`); may be empty otherwise. Needs at least 2 points.
     ParticleEngine(const PointCloud& input, std::span<const Vec3f> normals, std::span<const float> variation,
                    bool adaptive);
     ~ParticleEngine();

@@ -111,9 +111,12 @@ double RimDensityRatio(const ResampleResult& r) {
 }
 
 // The issue asks for twice the density on the inner rim. The notes' rule (2.3.4: repulsion
-// radius ~ 1 / sigma_n) gives what the torus's variation allows: sigma_n grows with the squared
-// principal curvatures, (1/0.35)^2 + (1/0.65)^2 inside against (1/0.35)^2 + (1/1.35)^2 outside,
-// only 1.2x. Measured: 1.76x (uniform: about 1). Asserted: clearly denser, >= 1.5x.
+// radius ~ 1 / sigma_n) makes the density ~ sigma_n^2. On this torus the mean sigma_16 is only
+// 1.42x higher inside than outside, and sigma_16 of one point is noisy (CV 0.45: it grows with
+// the squared radius of its 16 neighbours, which a random sampling makes uneven), so 857 of the
+// 5000 radii hit the [1/2, 2] clamp: the raw sigma_n gave 1.76x. The engine reads sigma_n at one
+// scale (sigma_n / r_16^2) averaged over the 16-neighbourhood (CommonScaleVariation): none
+// clamped, predicted 2.26x, measured 2.16-2.29x over three inputs and two seeds (uniform: ~1).
 TEST(Resample, AdaptiveIsDenserOnTheTorusInnerRim) {
     const PointCloud input = Sample(Shape::kTorus);
     ResampleOptions o = Count(2 * kInput);
@@ -124,7 +127,7 @@ TEST(Resample, AdaptiveIsDenserOnTheTorusInnerRim) {
     const double adaptive = RimDensityRatio(r);
     std::printf("torus inner/outer rim density: uniform %.2f, adaptive %.2f\n", uniform, adaptive);
     EXPECT_NEAR(uniform, 1.0, 0.15);
-    EXPECT_GE(adaptive, 1.5);
+    EXPECT_GE(adaptive, 2.0);
     for (const Vec3f& p : r.cloud.positions)
         EXPECT_LE(ShapeDistance(Shape::kTorus, p.cast<double>()), Tolerance(Shape::kTorus) * kTorusMinorRatio);
 }
@@ -136,7 +139,10 @@ TEST(Resample, FastVariantsStayOnTheSphereAndEven) {
     ResampleOptions o = Count(4 * kInput);
     o.spread_disk = true;
     o.cached_fits = true;
-    o.relax_tolerance = 0.006;
+    o.iterations = 60;
+    // At kResampleGain the mean step settles near 0.02 r0 and stays there (the particles bounce
+    // within reach of each other), so only a tolerance above that stops early: here after 12 steps.
+    o.relax_tolerance = 0.025;
     const ResampleResult r = Resample(input, o);
     ASSERT_EQ(r.cloud.size(), 4 * kInput);
     double worst = 0.0;
