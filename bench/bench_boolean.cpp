@@ -12,6 +12,7 @@
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
+#include <ctime>
 #include <functional>
 #include <iostream>
 #include <map>
@@ -43,6 +44,14 @@ using namespace surfel;
 using Clock = std::chrono::steady_clock;
 
 double Ms(Clock::time_point a, Clock::time_point b) { return std::chrono::duration<double, std::milli>(b - a).count(); }
+
+/// CPU time of the whole process (every thread), ms: on a shared machine the wall clock counts
+/// other sessions' load, this does not.
+double ProcessCpuMs() {
+    timespec ts{};
+    clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &ts);
+    return 1e3 * static_cast<double>(ts.tv_sec) + 1e-6 * static_cast<double>(ts.tv_nsec);
+}
 
 std::string DataDir() {
     if (const char* env = std::getenv("SURFEL_DATA")) return env;
@@ -200,16 +209,36 @@ void Accuracy(const Case& c, const std::vector<Vec3f>& out, nlohmann::json& j) {
     j["coverage_max_rel"] = cov.back();
 }
 
+/// FNV-1a over the output's positions, normals, radii and extras: equal hashes, equal output (to
+/// check that a speed-up leaves the result as it was).
+std::string OutputHash(const PointCloud& cloud) {
+    std::uint64_t h = 1469598103934665603ull;
+    auto add = [&](const void* data, std::size_t bytes) {
+        const auto* p = static_cast<const unsigned char*>(data);
+        for (std::size_t i = 0; i < bytes; ++i) h = (h ^ p[i]) * 1099511628211ull;
+    };
+    add(cloud.positions.data(), cloud.positions.size() * sizeof(Vec3f));
+    add(cloud.normals.data(), cloud.normals.size() * sizeof(Vec3f));
+    add(cloud.radii.data(), cloud.radii.size() * sizeof(float));
+    for (const auto& e : cloud.extras) add(e.values.data(), e.values.size() * sizeof(double));
+    char buf[17];
+    std::snprintf(buf, sizeof buf, "%016llx", static_cast<unsigned long long>(h));
+    return buf;
+}
+
 nlohmann::json RunOurs(const Case& c) {
     nlohmann::json j;
     const auto t0 = Clock::now();
+    const double cpu0 = ProcessCpuMs();
     BooleanOptions options;
     options.transform = c.transform;
     const BooleanResult r = Boolean(c.a, c.b, c.op, options);
     const auto t1 = Clock::now();
     j["time_ms"] = Ms(t0, t1);
+    j["cpu_ms"] = ProcessCpuMs() - cpu0;
     j["stages"] = {{"boolean", Ms(t0, t1)}};
     j["points"] = r.cloud.size();
+    j["output_hash"] = OutputHash(r.cloud);
     j["curve_samples"] = r.report.curve_samples;
     j["mean_newton_iterations"] = r.report.mean_newton_iterations;
     j["queries_saved_share"] = r.report.queries_saved_share;
@@ -349,6 +378,7 @@ int main(int argc, char** argv) {
             if (count == 0) count = c.a.size() + c.b.size();
             j.update(RunPeer(c, count));
 #else
+            (void)count;
             std::cerr << "bench_boolean: built without CGAL + Open3D; no peer side\n";
             return 1;
 #endif

@@ -85,7 +85,7 @@ def main():
         for side, rows in (("ours", ours), ("peer", peer)):
             if not rows:
                 continue
-            row[side] = {k: median(rows, k) for k in ("time_ms", "process_ms", "peak_rss_mb", "points",
+            row[side] = {k: median(rows, k) for k in ("time_ms", "cpu_ms", "process_ms", "peak_rss_mb", "points",
                                                        "dist_mean_rel", "dist_p95_rel", "dist_max_rel",
                                                        "coverage_p95_rel", "coverage_max_rel")}
             row[side]["stages"] = {k: statistics.median(r["stages"][k] for r in rows) for k in rows[0]["stages"]}
@@ -96,6 +96,7 @@ def main():
                 row[side]["curve_samples"] = median(rows, "curve_samples")
                 row[side]["mean_newton_iterations"] = median(rows, "mean_newton_iterations")
                 row[side]["queries_saved_share"] = median(rows, "queries_saved_share")
+                row["output_hash"] = rows[0].get("output_hash", "")
         lines.append(row)
 
     out = [f"# Booleans on point sets against Open3D Poisson + CGAL corefinement ({datetime.date.today()})", "",
@@ -121,7 +122,8 @@ def main():
     out += ["", "Peer stages (medians, ms) and ours' report:", ""]
     for r in lines:
         o, p = r["ours"], r.get("peer")
-        s = (f"- {r['case']}: ours {o['time_ms']:.0f} ms, {o['curve_samples']:.0f} curve samples, "
+        cpu = f" (CPU {o['cpu_ms']:.0f} ms, output {r['output_hash']})" if o.get("cpu_ms") is not None else ""
+        s = (f"- {r['case']}: ours {o['time_ms']:.0f} ms{cpu}, {o['curve_samples']:.0f} curve samples, "
              f"{o['mean_newton_iterations']:.2f} Newton iterations, {100 * o['queries_saved_share']:.0f} % of "
              "classification queries saved")
         if p:

@@ -4,10 +4,13 @@
 
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
+#include <tbb/parallel_invoke.h>
 
 #include <Eigen/Geometry>
 #include <algorithm>
 #include <atomic>
+#include <exception>
+#include <memory>
 #include <cmath>
 #include <sstream>
 #include <unordered_map>
@@ -17,7 +20,6 @@
 #include "surfel/spatial/kd_tree.h"
 
 namespace surfel {
-
 // ---------------------------------------------------------------------------------------------
 // Names and options
 // ---------------------------------------------------------------------------------------------
@@ -89,12 +91,13 @@ constexpr double kPi = 3.14159265358979323846;
 
 struct Side {
     std::string name;                   // "a" or "b", for messages
-    const PointCloud* cloud = nullptr;  // the input, or `own` when normals were estimated
-    PointCloud own;
+    const PointCloud* cloud = nullptr;  // the input, or *own when normals were estimated
+    std::shared_ptr<PointCloud> own;
     const PointCloud* input = nullptr;  // as given (its radii)
-    std::unique_ptr<KdTree> tree;
-    SamplingDensity density;  // eta_i in the input's own frame
-    std::unique_ptr<MlsSurface> mls;
+    // Shared with the other side when both inputs are the same cloud (SharePrepared).
+    std::shared_ptr<const KdTree> tree;
+    std::shared_ptr<const SamplingDensity> density;  // eta_i in the input's own frame
+    std::shared_ptr<const MlsSurface> mls;
     bool normals_estimated = false;
     // Placement: world = s R x + t.
     Eigen::Matrix3f R = Eigen::Matrix3f::Identity();
@@ -110,7 +113,7 @@ struct Side {
     Vec3f NormalToWorld(const Vec3f& n) const { return identity ? n : Vec3f(R * n); }
     Vec3f Position(std::uint32_t i) const { return ToWorld(cloud->positions[i]); }
     Vec3f Normal(std::uint32_t i) const { return NormalToWorld(cloud->normals[i]); }
-    float Spacing(std::uint32_t i) const { return s * density.spacing[i]; }
+    float Spacing(std::uint32_t i) const { return s * density->spacing[i]; }
     std::size_t size() const { return cloud->size(); }
 
     // MLS projection of a world point; world position and normal.
@@ -123,27 +126,19 @@ struct Side {
     }
 };
 
-void PrepareSide(Side& side, const PointCloud& input, const BooleanOptions& options, bool placed) {
+// The checks of one input that need no work: enough points, finite positions.
+void CheckInput(const std::string& name, const PointCloud& input) {
     if (input.size() < kMinBooleanInput) {
         std::ostringstream msg;
         msg << "needs at least " << kMinBooleanInput << " points to bound a volume, got "
             << input.size();
-        InvalidField(side.name, msg.str());
+        InvalidField(name, msg.str());
     }
     for (const Vec3f& p : input.positions)
-        if (!p.allFinite()) InvalidField(side.name, "has a non-finite position");
-    side.tree = std::make_unique<KdTree>(input.positions);
-    side.cloud = &input;
-    side.input = &input;
-    if (!input.has_normals()) {
-        NormalOptions no = options.normals;
-        no.orient = true;
-        side.own.positions = input.positions;
-        side.own.normals = EstimateNormals(*side.tree, no).normals;
-        side.cloud = &side.own;
-        side.normals_estimated = true;
-    }
-    side.density = ComputeSamplingDensity(*side.tree, 6);
+        if (!p.allFinite()) InvalidField(name, "has a non-finite position");
+}
+
+void Place(Side& side, const BooleanOptions& options, bool placed) {
     if (placed) {
         const Similarity& T = options.transform;
         side.R = T.rotation.cast<float>();
@@ -151,12 +146,92 @@ void PrepareSide(Side& side, const PointCloud& input, const BooleanOptions& opti
         side.s = static_cast<float>(T.scale);
         side.identity = T.rotation.isIdentity(0.0) && T.translation.isZero(0.0) && T.scale == 1.0;
     }
-    MlsOptions mo = options.mls;
-    if (mo.h > 0) mo.h /= side.s;  // options.mls.h is in world units
-    side.mls = std::make_unique<MlsSurface>(*side.cloud, *side.tree, mo);
     float mx = 0;
-    for (float e : side.density.spacing) mx = std::max(mx, e);
+    for (float e : side.density->spacing) mx = std::max(mx, e);
     side.max_spacing_world = side.s * mx;
+}
+
+void PrepareSide(Side& side, const PointCloud& input, const BooleanOptions& options, bool placed) {
+    CheckInput(side.name, input);
+    const auto tree = std::make_shared<KdTree>(input.positions);
+    side.tree = tree;
+    side.cloud = &input;
+    side.input = &input;
+    if (!input.has_normals()) {
+        NormalOptions no = options.normals;
+        no.orient = true;
+        side.own = std::make_shared<PointCloud>();
+        side.own->positions = input.positions;
+        side.own->normals = EstimateNormals(*tree, no).normals;
+        side.cloud = side.own.get();
+        side.normals_estimated = true;
+    }
+    side.density = std::make_shared<const SamplingDensity>(ComputeSamplingDensity(*tree, 6));
+    Place(side, options, placed);
+    MlsOptions mo = options.mls;
+    if (mo.h > 0) {
+        mo.h /= side.s;  // options.mls.h is in world units
+    } else if (!mo.adaptive && mo.scale_rule == MlsScaleRule::kSpacing) {
+        // The spacing rule's h (2 x the median spacing, MlsSurface's default) from the spacing
+        // just computed: the same value, one neighbour search less.
+        mo.h = 2.0f * MedianSpacing(*side.density);
+    }
+    side.mls = std::make_shared<const MlsSurface>(*side.cloud, *tree, mo);
+}
+
+// Whether B can take A's prepared samples (kd-tree, normals, spacing, MLS surface) as they are:
+// the same positions and the same normals (or none on both), and an MLS scale that does not
+// depend on the placement (derived from the spacing, or B not scaled). B ∪ a moved copy of
+// itself (the notes' Figure 3.3) then prepares one input, not two.
+bool SameSolid(const PointCloud& a, const PointCloud& b, const BooleanOptions& options) {
+    if (a.positions != b.positions || a.has_normals() != b.has_normals()) return false;
+    if (a.has_normals() && a.normals != b.normals) return false;
+    return options.mls.h == 0 || options.transform.scale == 1.0;
+}
+
+// B from A's prepared data (SameSolid): only the name, the input (its radii) and the placement
+// are B's own.
+void SharePrepared(Side& b, const Side& a, const PointCloud& input, const BooleanOptions& options) {
+    b.tree = a.tree;
+    b.own = a.own;
+    b.cloud = a.own ? a.own.get() : &input;
+    b.input = &input;
+    b.density = a.density;
+    b.mls = a.mls;
+    b.normals_estimated = a.normals_estimated;
+    Place(b, options, true);
+}
+
+// Both inputs prepared: concurrently (each preparation has serial parts, such as the normal
+// orientation's spanning tree), or once when B is the same cloud as A. An error names A's input
+// first, as a serial preparation would.
+void PrepareSides(Side& A, const PointCloud& a, Side& B, const PointCloud& b,
+                  const BooleanOptions& options) {
+    CheckInput(A.name, a);
+    CheckInput(B.name, b);
+    if (SameSolid(a, b, options)) {
+        PrepareSide(A, a, options, false);
+        SharePrepared(B, A, b, options);
+        return;
+    }
+    std::exception_ptr error_a, error_b;
+    tbb::parallel_invoke(
+        [&] {
+            try {
+                PrepareSide(A, a, options, false);
+            } catch (...) {
+                error_a = std::current_exception();
+            }
+        },
+        [&] {
+            try {
+                PrepareSide(B, b, options, true);
+            } catch (...) {
+                error_b = std::current_exception();
+            }
+        });
+    if (error_a) std::rethrow_exception(error_a);
+    if (error_b) std::rethrow_exception(error_b);
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -171,7 +246,7 @@ void CheckBoundsVolume(const Side& side, double max_open_area) {
     Vec3d flux = Vec3d::Zero();
     double area = 0;
     for (std::uint32_t i = 0; i < side.size(); ++i) {
-        const double a = double{side.density.spacing[i]} * side.density.spacing[i];
+        const double a = double{side.density->spacing[i]} * side.density->spacing[i];
         flux += a * side.cloud->normals[i].cast<double>();
         area += a;
     }
@@ -209,7 +284,7 @@ Omega Classify(const Side& side, const Vec3f& x, const Vec3f& nx, double coincid
     const Neighbor nb = side.tree->Nearest(xl);
     const Vec3f& p = side.tree->points()[nb.index];
     const Vec3f& np = side.cloud->normals[nb.index];
-    const float d = std::sqrt(nb.dist2), eta = side.density.spacing[nb.index];
+    const float d = std::sqrt(nb.dist2), eta = side.density->spacing[nb.index];
     Omega o;
     if (d > eta) {
         o.value = (xl - p).dot(np) < 0 ? kInside : kOutside;
@@ -716,8 +791,7 @@ BooleanResult Boolean(const PointCloud& a, const PointCloud& b, BooleanOp op,
     Side A, B;
     A.name = "a";
     B.name = "b";
-    PrepareSide(A, a, options, false);
-    PrepareSide(B, b, options, true);
+    PrepareSides(A, a, B, b, options);
     rep.normals_estimated_a = A.normals_estimated;
     rep.normals_estimated_b = B.normals_estimated;
     CheckBoundsVolume(A, options.max_open_area);

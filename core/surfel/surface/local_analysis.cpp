@@ -60,6 +60,18 @@ SamplingDensity ComputeSamplingDensity(std::span<const Vec3f> points, int k) {
     return ComputeSamplingDensity(points, k, nullptr);
 }
 
+float MedianSpacing(const SamplingDensity& density, std::size_t max_samples) {
+    const std::size_t n = density.spacing.size();
+    if (n < 2) return 0.0f;
+    if (n <= max_samples || max_samples == 0) return density.median_spacing;
+    const std::size_t stride = (n + max_samples - 1) / max_samples;
+    std::vector<float> spacing;
+    spacing.reserve(n / stride + 1);
+    for (std::size_t i = 0; i < n; i += stride) spacing.push_back(density.spacing[i]);
+    std::nth_element(spacing.begin(), spacing.begin() + spacing.size() / 2, spacing.end());
+    return spacing[spacing.size() / 2];
+}
+
 float MedianSpacing(const KdTree& tree, int k, std::size_t max_samples) {
     const std::size_t n = tree.size();
     if (n < 2) return 0.0f;
@@ -320,17 +332,27 @@ std::size_t OrientOverGraph(std::span<const Vec3f> pts, std::vector<Vec3f>& norm
     // tree as pushing every edge, with the same tie-break, but far less heap traffic).
     std::vector<float> best(n, std::numeric_limits<float>::infinity());
     std::vector<std::uint32_t> best_from(n, UINT32_MAX);
+    // Each edge's cost, computed in parallel before the serial propagation: Hoppe's
+    // 1 - |ni . nj| plus the edge's tilt out of the two tangent planes (an edge across a thin part
+    // joins antiparallel normals, which the plain cost finds cheapest). It does not depend on the
+    // normals' signs, which the propagation changes.
+    std::vector<float> edge_cost(adj.size());
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 1024), [&](const tbb::blocked_range<std::size_t>& r) {
+        for (std::size_t u = r.begin(); u != r.end(); ++u)
+            for (std::uint32_t e = start[u]; e < start[u + 1]; ++e) {
+                const std::uint32_t v = adj[e];
+                const Vec3f edge = pts[v] - pts[u];
+                const float len = edge.norm();
+                const float tilt =
+                    len > 0 ? 0.5f * (std::abs(edge.dot(normals[u])) + std::abs(edge.dot(normals[v]))) / len : 0.0f;
+                edge_cost[e] = 1.0f - std::abs(normals[u].dot(normals[v])) + crossing_weight * tilt;
+            }
+    });
     auto push_edges = [&](std::uint32_t u) {
         for (std::uint32_t e = start[u]; e < start[u + 1]; ++e) {
             const std::uint32_t v = adj[e];
             if (visited[v]) continue;
-            // Hoppe's 1 - |ni . nj| plus the edge's tilt out of the two tangent planes: an edge
-            // across a thin part joins antiparallel normals, which the plain cost finds cheapest.
-            const Vec3f edge = pts[v] - pts[u];
-            const float len = edge.norm();
-            const float tilt =
-                len > 0 ? 0.5f * (std::abs(edge.dot(normals[u])) + std::abs(edge.dot(normals[v]))) / len : 0.0f;
-            const float cost = 1.0f - std::abs(normals[u].dot(normals[v])) + crossing_weight * tilt;
+            const float cost = edge_cost[e];
             if (cost < best[v] || (cost == best[v] && u < best_from[v])) {
                 best[v] = cost;
                 best_from[v] = u;

@@ -34,6 +34,9 @@ float SpacingFromRadius(float r, int k);
 /// The median of the spacing eta over at most `max_samples` points (an even stride through the
 /// cloud; all of them when it is smaller): what DefaultScale needs, without a density per point.
 float MedianSpacing(const KdTree& tree, int k = 6, std::size_t max_samples = 20000);
+/// The same median from a density already computed with the same k (its eta at the same strided
+/// points): equal to MedianSpacing(tree, k, max_samples) for the tree the density came from.
+float MedianSpacing(const SamplingDensity& density, std::size_t max_samples = 20000);
 
 /// The default MLS / surface scale h of a cloud: 2 x the median sample spacing (eta). With the
 /// Gaussian theta(d) = exp(-d^2/h^2) about 4*pi samples carry most weight, enough for a stable

@@ -694,6 +694,36 @@ TEST(Boolean, IndependentOfTheThreadCount) {
     EXPECT_EQ(all.report.mean_newton_iterations, one.report.mean_newton_iterations);
 }
 
+// B the same cloud as A (the notes' Figure 3.3: a solid and a moved copy of itself) is prepared
+// once; the result equals that of preparing the copy on its own (here: B given the normals A's
+// preparation estimates, which makes it a different input to share).
+TEST(Boolean, ACopyOfItselfIsPreparedOnceWithTheSameResult) {
+    PointCloud a = Sample(Shape::kTorus, 12000, 1.0, 21);
+    a.normals.clear();
+    PointCloud b = a;
+    {
+        const KdTree tree(a.positions);
+        NormalOptions no;
+        no.orient = true;
+        b.normals = EstimateNormals(tree, no).normals;
+    }
+    BooleanOptions opt;
+    opt.transform.rotation = Eigen::AngleAxisd(0.7, Vec3d(0.3, 1, 0.2).normalized()).toRotationMatrix();
+    opt.transform.translation = Vec3d(0.4, 0.1, 0.05);
+    for (BooleanOp op : {BooleanOp::kUnion, BooleanOp::kDifference}) {
+        const BooleanResult shared = Boolean(a, a, op, opt);
+        const BooleanResult own = Boolean(a, b, op, opt);
+        ASSERT_GT(shared.report.curve_samples, 0u) << BooleanOpName(op);
+        EXPECT_TRUE(shared.report.normals_estimated_b);
+        EXPECT_FALSE(own.report.normals_estimated_b);
+        EXPECT_EQ(shared.cloud.positions, own.cloud.positions) << BooleanOpName(op);
+        EXPECT_EQ(shared.cloud.normals, own.cloud.normals) << BooleanOpName(op);
+        EXPECT_EQ(shared.cloud.radii, own.cloud.radii) << BooleanOpName(op);
+        EXPECT_EQ(shared.report.curve_samples, own.report.curve_samples);
+        EXPECT_EQ(shared.report.mean_newton_iterations, own.report.mean_newton_iterations);
+    }
+}
+
 TEST(Boolean, Cancels) {
     const PointCloud a = Sample(Shape::kSphere, 5000, 1.0, 18);
     BooleanOptions opt;

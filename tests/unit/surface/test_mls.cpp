@@ -37,6 +37,22 @@ TEST(Mls, NoisySphereProjectsToItsRadius) {
     EXPECT_LT(worst, 0.01);                    // and every point closer than the noise level
 }
 
+// MedianSpacing from a density computed already equals the one from the tree (the same spacing
+// at the same strided points): exactly, for a cloud below the sample limit and one above it.
+TEST(Mls, MedianSpacingFromADensityEqualsTheTreesOne) {
+    for (std::size_t n : {5000u, 35000u}) {
+        ShapeOptions o;
+        o.points = n;
+        o.noise = 0.002;
+        const PointCloud c = SampleShape(Shape::kTorus, o);
+        const KdTree tree(c.positions);
+        const SamplingDensity density = ComputeSamplingDensity(tree, 6);
+        EXPECT_EQ(MedianSpacing(density), MedianSpacing(tree)) << n;
+        EXPECT_EQ(MedianSpacing(density, 1000), MedianSpacing(tree, 6, 1000)) << n;
+        EXPECT_GT(MedianSpacing(density), 0.0f);
+    }
+}
+
 // The noise rule (ChooseMlsScale): the noise estimated from the quadratic fits' residuals, and a
 // scale that leaves under 0.15 % RMS radial error on a unit sphere with 1 % noise (the spacing
 // rule, still the default, leaves 0.30 %). Measured: sigma 0.0095, h = 4 h0 = 0.211, 0.088 %.
