@@ -21,6 +21,7 @@ struct AaSurface::Fit {
     LocalFrame frame;                     // origin r, normal n of the support plane
     PolyCoeffs g;                         // a_i(x, y) over the plane
     Vec3d normal_ref = Vec3d::Zero();     // weighted average of the cloud's normals (if any)
+    Vec3d mean = Vec3d::Zero();           // the weighted average a(r) of the fit's points, eq. 1
     std::array<float, 4> color{0, 0, 0, 1};
     bool valid = false;
 };
@@ -43,6 +44,9 @@ struct AaSurface::Impl {
     // AaBandwidth::kAdaptive (empty when fixed): h_j, 1 / h_j^2, and the gather scale of ball i,
     // the largest h_j of the points near it (a fit in ball i gathers within cutoff x that).
     std::vector<float> scale, inv_h2, reach;
+    // AaOptions::boundary: the scale of ball i's threshold, max(h, the smoothed local scale h_i)
+    // (empty when boundary = 0). Adaptive: h_i itself.
+    std::vector<float> boundary_scale;
     float max_scale = 0.0f;
     std::vector<Vec3f> weight_normals;  // normal-aware weights (normal_sigma > 0)
     std::unique_ptr<UniformGrid> grid;
@@ -103,6 +107,7 @@ void AaOptions::Validate() const {
         InvalidField("bandwidth", "unknown kind " + std::to_string(static_cast<int>(bandwidth)));
     CheckRange("ball_h", ball_h, 0, 10);
     CheckRange("normal_sigma", normal_sigma, 0, 10);
+    CheckRange("boundary", boundary, 0, 10);
 }
 
 namespace {
@@ -175,6 +180,19 @@ AaSurface::AaSurface(const PointCloud& cloud, const AaOptions& options)
                 impl_->reach[i] = m;
             }
         });
+    }
+    // The boundary's scale. With one h, where the samples lie farther apart than h / 2 the
+    // weighted average of an interior point strays from it by chance (about 0.2 spacings, so
+    // 0.5 h is 2.5 standard deviations where the spacing is h): the threshold is taken in units
+    // of the local scale there, the one kAdaptive would use (the notes' h(x) = h / rho(x)), and
+    // never below h, so that the rims of evenly sampled parts keep the threshold of the rule.
+    if (o.boundary > 0) {
+        if (!impl_->scale.empty()) {
+            impl_->boundary_scale = impl_->scale;
+        } else {
+            AdaptiveScales(*impl_->grid, cloud.positions, density, o.h, &impl_->boundary_scale);
+            for (float& v : impl_->boundary_scale) v = std::max(v, o.h);
+        }
     }
     if (o.ball_h > 0)
         for (std::size_t i = 0; i < cloud.size(); ++i)
@@ -356,6 +374,7 @@ bool AaSurface::FitAt(const Vec3d& r, Fit* fit, float cutoff, bool attributes, s
     const Vec3d lambda = es.eigenvalues();
     if (!(lambda[0] < o.normal_ratio * lambda[1])) return false;  // normal not well defined
     fit->frame = LocalFrame::FromNormal(rf.cast<double>(), es.eigenvectors().col(0));
+    fit->mean = rf.cast<double>() + Vec3d(wm.x, wm.y, wm.z) / wm.w;
     // Step 2, polynomial: minimise sum (a_i(x_j, y_j) - f_j)^2 theta_j (eq. 10).
     nb.ToLocal(Vec3d::Zero(), fit->frame.u, fit->frame.v, fit->frame.n);
     PolyFit pf(o.degree, o.h);
@@ -477,6 +496,15 @@ std::optional<AaHit> AaSurface::IntersectInBall(std::uint32_t ball, const Vec3d&
             AaHit hit;
             hit.t = tn;
             hit.position = o + tn * d;
+            // The boundary (course notes, "surfaces from normals and weighted averages"): a hit
+            // whose weighted average lies farther than boundary x h from it along the surface has
+            // no points around it, only on one side: the fit extrapolates past the rim of a part.
+            if (opt.boundary > 0) {
+                const Vec3d e = hit.position - fit.mean;
+                const Vec3d et = e - e.dot(fit.frame.n) * fit.frame.n;
+                const double hb = impl_->boundary_scale[ball];
+                if (et.squaredNorm() > double(opt.boundary) * opt.boundary * hb * hb) return std::nullopt;
+            }
             const Vec3d l = fit.frame.ToLocal(hit.position);
             Vec3d n = fit.frame.NormalAt(fit.g, l.x(), l.y());
             const bool oriented = fit.normal_ref.squaredNorm() > 0;
