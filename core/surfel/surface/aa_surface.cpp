@@ -44,9 +44,11 @@ struct AaSurface::Impl {
     // AaBandwidth::kAdaptive (empty when fixed): h_j, 1 / h_j^2, and the gather scale of ball i,
     // the largest h_j of the points near it (a fit in ball i gathers within cutoff x that).
     std::vector<float> scale, inv_h2, reach;
-    // AaOptions::boundary: the scale of ball i's threshold, max(h, the smoothed local scale h_i)
-    // (empty when boundary = 0). Adaptive: h_i itself.
-    std::vector<float> boundary_scale;
+    // AaOptions::boundary (empty when boundary = 0): each point's sample spacing eta_j (notes
+    // 1.1.1, the ball_k-th neighbour) over the median spacing, for the local scale of a hit.
+    std::vector<float> relative_spacing;
+    // The local scale of ball i's boundary test (0 = not computed yet), filled on first need.
+    std::unique_ptr<std::atomic<float>[]> boundary_scale;
     float max_scale = 0.0f;
     std::vector<Vec3f> weight_normals;  // normal-aware weights (normal_sigma > 0)
     std::unique_ptr<UniformGrid> grid;
@@ -181,18 +183,12 @@ AaSurface::AaSurface(const PointCloud& cloud, const AaOptions& options)
             }
         });
     }
-    // The boundary's scale. With one h, where the samples lie farther apart than h / 2 the
-    // weighted average of an interior point strays from it by chance (about 0.2 spacings, so
-    // 0.5 h is 2.5 standard deviations where the spacing is h): the threshold is taken in units
-    // of the local scale there, the one kAdaptive would use (the notes' h(x) = h / rho(x)), and
-    // never below h, so that the rims of evenly sampled parts keep the threshold of the rule.
     if (o.boundary > 0) {
-        if (!impl_->scale.empty()) {
-            impl_->boundary_scale = impl_->scale;
-        } else {
-            AdaptiveScales(*impl_->grid, cloud.positions, density, o.h, &impl_->boundary_scale);
-            for (float& v : impl_->boundary_scale) v = std::max(v, o.h);
-        }
+        const float med = density.median_spacing > 0 ? density.median_spacing : 1.0f;
+        impl_->relative_spacing.resize(cloud.size());
+        for (std::size_t i = 0; i < cloud.size(); ++i) impl_->relative_spacing[i] = density.spacing[i] / med;
+        impl_->boundary_scale.reset(new std::atomic<float>[cloud.size()]);
+        for (std::size_t i = 0; i < cloud.size(); ++i) impl_->boundary_scale[i].store(0.0f, std::memory_order_relaxed);
     }
     if (o.ball_h > 0)
         for (std::size_t i = 0; i < cloud.size(); ++i)
@@ -219,6 +215,26 @@ const AaOptions& AaSurface::options() const { return impl_->opt; }
 const PointCloud& AaSurface::cloud() const { return impl_->cloud; }
 float AaSurface::BallRadius(std::uint32_t i) const { return impl_->ball_radius[i]; }
 float AaSurface::PointScale(std::uint32_t i) const { return impl_->scale.empty() ? impl_->opt.h : impl_->scale[i]; }
+
+float AaSurface::BoundaryScale(std::uint32_t i) const {
+    if (!impl_->boundary_scale) return PointScale(i);
+    std::atomic<float>& cached = impl_->boundary_scale[i];
+    const float c = cached.load(std::memory_order_relaxed);
+    if (c > 0) return c;
+    // h x sum theta_j eta_j / sum theta_j / median eta, theta_j = exp(-|p_j - p_i|^2 / h^2) within
+    // 2 h (the same value whichever thread computes it).
+    const float h = impl_->opt.h, inv = 1.0f / (h * h);
+    const UniformGrid& g = *impl_->grid;
+    double sw = 0, ss = 0;
+    g.ForEachWithin(impl_->cloud.positions[i], std::min(2.0f * h, g.cell()), [&](std::uint32_t j, const Vec3f&, float d2) {
+        const double w = std::exp(-double(d2) * inv);
+        sw += w;
+        ss += w * impl_->relative_spacing[j];
+    });
+    const float v = sw > 0 ? static_cast<float>(h * ss / sw) : h;
+    cached.store(v, std::memory_order_relaxed);
+    return v;
+}
 const std::vector<Vec3f>& AaSurface::WeightNormals() const { return impl_->weight_normals; }
 
 namespace {
@@ -499,11 +515,22 @@ std::optional<AaHit> AaSurface::IntersectInBall(std::uint32_t ball, const Vec3d&
             // The boundary (course notes, "surfaces from normals and weighted averages"): a hit
             // whose weighted average lies farther than boundary x h from it along the surface has
             // no points around it, only on one side: the fit extrapolates past the rim of a part.
+            // The threshold is in units of the local scale where the samples lie farther apart
+            // than h / 2: there an interior point's weighted average strays from it by chance
+            // (about 0.2 spacings: 2.5 standard deviations of 0.5 h at a spacing of h). The
+            // local scale of ball i is h times the Gaussian-weighted mean spacing around its
+            // centre over the median spacing (the notes' adaptive h(x) = h / rho(x), smoothed),
+            // never below h, so that the rims of evenly sampled parts keep the rule's threshold.
+            // It is computed once per ball, and only for balls with a hit that fails against h.
             if (opt.boundary > 0) {
                 const Vec3d e = hit.position - fit.mean;
                 const Vec3d et = e - e.dot(fit.frame.n) * fit.frame.n;
-                const double hb = impl_->boundary_scale[ball];
-                if (et.squaredNorm() > double(opt.boundary) * opt.boundary * hb * hb) return std::nullopt;
+                const double b2 = double(opt.boundary) * opt.boundary, h0 = PointScale(ball);
+                const double e2 = et.squaredNorm();
+                if (e2 > b2 * h0 * h0) {
+                    const double hl = std::max(h0, double(BoundaryScale(ball)));
+                    if (e2 > b2 * hl * hl) return std::nullopt;
+                }
             }
             const Vec3d l = fit.frame.ToLocal(hit.position);
             Vec3d n = fit.frame.NormalAt(fit.g, l.x(), l.y());

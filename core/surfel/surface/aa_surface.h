@@ -70,8 +70,11 @@ struct AaOptions {
     /// require ||x - a(x)|| below a threshold): a converged hit x is kept only where the weighted
     /// average a(x) of its fit lies within boundary x h_i of it along the support plane (the
     /// notes' distance for their degree-0 surface, where x - a(x) is tangential at f = 0; the
-    /// height component here is the fit's curvature, not a sign of a boundary). 0 = no boundary
-    /// (the paper's surface, which extrapolates up to a ball radius past the rim of every part).
+    /// height component here is the fit's curvature, not a sign of a boundary). h_i is the
+    /// point's scale, raised where the samples around p_i lie farther apart than the median
+    /// spacing (BoundaryScale), so that chance offsets of sparse interiors are not taken for
+    /// edges. 0 = no boundary (the paper's surface, which
+    /// extrapolates up to a ball radius past the rim of every part).
     float boundary = kSurfaceBoundary;
 
     /// Throws Error(kInvalidArgument, "<field>: <what>") for the first bad field, named as in the
@@ -135,6 +138,10 @@ public:
     float BallRadius(std::uint32_t i) const;
     /// The Gaussian scale of point i: h() when the bandwidth is fixed, h_i when adaptive.
     float PointScale(std::uint32_t i) const;
+    /// The local scale of ball i's boundary test (AaOptions::boundary): h x the Gaussian-weighted
+    /// mean sample spacing within 2h of p_i over the median spacing; PointScale(i) when the
+    /// boundary is off. Computed on first use and cached.
+    float BoundaryScale(std::uint32_t i) const;
     /// The normals the normal-aware weights use (the cloud's or estimated); empty when
     /// options().normal_sigma = 0.
     const std::vector<Vec3f>& WeightNormals() const;
