@@ -145,7 +145,7 @@ void AdaptiveScales(const UniformGrid& grid, std::span<const Vec3f> pts, const S
 }
 }  // namespace
 
-AaSurface::AaSurface(const PointCloud& cloud, const AaOptions& options)
+AaSurface::AaSurface(const PointCloud& cloud, const AaOptions& options, const ProgressFn& progress)
     : impl_(std::make_unique<Impl>(cloud, options)) {
     AaOptions& o = impl_->opt;
     if (cloud.size() < 3) throw Error(ErrorCode::kInvalidArgument, "the surface needs at least 3 points, got " + std::to_string(cloud.size()));
@@ -198,7 +198,9 @@ AaSurface::AaSurface(const PointCloud& cloud, const AaOptions& options)
             impl_->weight_normals = cloud.normals;
         } else {
             const KdTree tree(cloud.positions);
-            impl_->weight_normals = EstimateNormals(tree).normals;
+            // Only the caller's cancellation: its fractions are the caller's whole job's.
+            const ProgressFn poll = [&progress](double) { return !progress || progress(0.0); };
+            impl_->weight_normals = EstimateNormals(tree, {}, poll).normals;
         }
     }
     impl_->id = next_surface_id.fetch_add(1, std::memory_order_relaxed);

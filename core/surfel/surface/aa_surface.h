@@ -13,6 +13,7 @@
 #include <vector>
 
 #include "surfel/base/point_cloud.h"
+#include "surfel/base/progress.h"
 #include "surfel/surface/poly_fit.h"
 
 namespace surfel {
@@ -125,8 +126,11 @@ struct AaCounters {
 class AaSurface {
 public:
     /// Throws Error(kInvalidArgument) when `options` fail AaOptions::Validate(), the cloud has
-    /// fewer than 3 points, or h = 0 cannot be derived (all points coincide).
-    explicit AaSurface(const PointCloud& cloud, const AaOptions& options = {});
+    /// fewer than 3 points, or h = 0 cannot be derived (all points coincide). `progress` is polled
+    /// (with fraction 0) during the longest part of the setup, the normal estimation that the
+    /// normal-aware weights need for a cloud without normals; returning false throws
+    /// Error(kCancelled).
+    explicit AaSurface(const PointCloud& cloud, const AaOptions& options = {}, const ProgressFn& progress = {});
     ~AaSurface();
 
     float h() const;
