@@ -5,7 +5,7 @@
 // Embree the same way. Writes a Markdown table and JSON.
 //
 //   bench_render_mesh [--data DIR] [--out PREFIX] [--models a,b] [--variants fixed,adaptive,...]
-//                     [--size W] [--no-poisson] [--png DIR]
+//                     [--size W] [--no-poisson] [--png DIR] [--diag DIR] [--views a,b]
 //
 // Per view: agreement = pixels where both hit or both miss / all pixels; `miss` = pixels the
 // mesh hits and the render does not; `false` = the reverse (floating fragments, merged sheets);
@@ -13,10 +13,13 @@
 // unit ray, diag: the model's bounding-box diagonal). A benchmark program, never part of the
 // product.
 #include <embree3/rtcore.h>
+#ifdef SURFEL_BENCH_OPEN3D
 #include <open3d/Open3D.h>
+#endif
 #include <tbb/parallel_for.h>
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
@@ -24,6 +27,7 @@
 #include <iostream>
 #include <limits>
 #include <map>
+#include <memory>
 #include <numbers>
 #include <sstream>
 #include <string>
@@ -33,6 +37,7 @@
 #include "surfel/io/image.h"
 #include "surfel/io/ply.h"
 #include "surfel/render/renderer.h"
+#include "surfel/spatial/kd_tree.h"
 
 namespace surfel::bench {
 namespace {
@@ -222,14 +227,20 @@ Score Compare(const std::vector<float>& truth, const std::vector<float>& z, doub
 // ---- Surfel variants ---------------------------------------------------------------------------
 
 // The surface options of a named variant (see the table's legend).
-// fixed: today's surface (one h = 2 x median spacing); adaptive: AaBandwidth::kAdaptive;
-// +ball: regions of trust at least ball_h = 1 h_i wide; +nw: normal-aware weights (sigma 0.5).
+// fixed: the paper's surface (one h = 2 x median spacing, plain weights, no boundary);
+// adaptive: AaBandwidth::kAdaptive;
+// +ball: regions of trust at least ball_h = 1 h_i wide; +nw: normal-aware weights (sigma 0.5);
+// +bdX: AaOptions::boundary = X. Core's default is fixed+nw+bd0.5.
 // Suffixes combine in this order, e.g. adaptive+ball+nw.
 bool ApplyVariant(const std::string& name, AaOptions* o) {
     std::vector<std::string> parts;
     std::stringstream ss(name);
     for (std::string x; std::getline(ss, x, '+');) parts.push_back(x);
     if (parts.empty()) return false;
+    // Every variant starts from the paper's surface, whatever core's defaults are.
+    o->normal_sigma = 0.0f;
+    o->boundary = 0.0f;
+    o->ball_h = 0.0f;
     if (parts[0] == "fixed") o->bandwidth = AaBandwidth::kFixed;
     else if (parts[0] == "adaptive") o->bandwidth = AaBandwidth::kAdaptive;
     else return false;
@@ -238,6 +249,7 @@ bool ApplyVariant(const std::string& name, AaOptions* o) {
         if (p == "ball") o->ball_h = 1.0f;
         else if (p.rfind("ball", 0) == 0) o->ball_h = std::stof(p.substr(4));
         else if (p == "nw") o->normal_sigma = kNormalAwareSigma;
+        else if (p.rfind("bd", 0) == 0) o->boundary = std::stof(p.substr(2));
         else if (p.rfind("nw", 0) == 0) o->normal_sigma = std::stof(p.substr(2));
         else return false;
     }
@@ -254,6 +266,7 @@ struct Poisson {
 
 Poisson MakePoisson(const PointCloud& c, int depth) {
     Poisson out;
+#ifdef SURFEL_BENCH_OPEN3D
     Stopwatch watch;
     auto pcd = std::make_shared<open3d::geometry::PointCloud>();
     for (const Vec3f& x : c.positions) pcd->points_.emplace_back(x.cast<double>());
@@ -267,6 +280,10 @@ Poisson MakePoisson(const PointCloud& c, int depth) {
     out.scene = std::make_unique<MeshScene>(v, t);
     out.ms = watch.ElapsedMs();
     out.triangles = t.size();
+#else
+    (void)c;
+    (void)depth;
+#endif
     return out;
 }
 
@@ -297,8 +314,70 @@ void WriteDepthPng(const std::vector<float>& z, const Camera& cam, const std::st
     WriteImage(img, path);
 }
 
+// --diag: where the render and the mesh disagree, as a colour image (grey: both hit, depth
+// error <= 2e-3 diag, shaded by depth; yellow: both hit, error above; red: false hit, the render
+// hits where the mesh does not; blue: miss) and a breakdown of the false hits printed to stdout:
+// how far each lies from the nearest sample (in h), whether it borders a pixel the mesh hits
+// (a fringe beyond the silhouette) and whether the depth errors lie in front of the mesh.
+void WriteDiag(const std::vector<float>& zt, const std::vector<float>& z, const Camera& cam, const KdTree& tree,
+               double h, double diag, const std::string& path, const std::string& label) {
+    const Camera::Frame f = cam.MakeFrame();
+    float lo = kInf, hi = -kInf;
+    for (float v : zt)
+        if (std::isfinite(v)) lo = std::min(lo, v), hi = std::max(hi, v);
+    Image img;
+    img.width = cam.width;
+    img.height = cam.height;
+    img.channels = {"R", "G", "B"};
+    img.pixels.assign(std::size_t(cam.width) * cam.height * 3, 0.0f);
+    std::size_t false_hits = 0, fringe = 0, bad_depth = 0, in_front = 0;
+    std::array<std::size_t, 6> dist_bins{};  // nearest sample / h: < 0.25, 0.5, 1, 1.5, 2, more
+    const std::array<double, 5> edges = {0.25, 0.5, 1.0, 1.5, 2.0};
+    auto mesh_hit = [&](int x, int y) {
+        return x >= 0 && y >= 0 && x < cam.width && y < cam.height && std::isfinite(zt[std::size_t(y) * cam.width + x]);
+    };
+    for (int y = 0; y < cam.height; ++y)
+        for (int x = 0; x < cam.width; ++x) {
+            const std::size_t i = std::size_t(y) * cam.width + x;
+            const bool a = std::isfinite(zt[i]), b = std::isfinite(z[i]);
+            float rgb[3] = {0, 0, 0};
+            if (a && b) {
+                const double e = std::abs(double(z[i]) - zt[i]) / diag;
+                const float g = 1.0f - 0.7f * (zt[i] - lo) / std::max(hi - lo, 1e-12f);
+                if (e > 2e-3) {
+                    ++bad_depth;
+                    in_front += z[i] < zt[i];
+                    rgb[0] = 1, rgb[1] = 0.85f, rgb[2] = 0;
+                } else {
+                    rgb[0] = rgb[1] = rgb[2] = g;
+                }
+            } else if (a) {
+                rgb[2] = 1, rgb[1] = 0.3f;
+            } else if (b) {
+                rgb[0] = 1;
+                ++false_hits;
+                bool near = false;
+                for (int dy = -2; dy <= 2; ++dy)
+                    for (int dx = -2; dx <= 2; ++dx) near = near || mesh_hit(x + dx, y + dy);
+                fringe += near;
+                const Vec3d p = cam.eye + double(z[i]) * f.Direction(x + 0.5, y + 0.5);
+                const double d = std::sqrt(double(tree.Nearest(p.cast<float>()).dist2)) / h;
+                std::size_t k = 0;
+                while (k < edges.size() && d >= edges[k]) ++k;
+                ++dist_bins[k];
+            }
+            for (int c = 0; c < 3; ++c) img.At(x, y, c) = rgb[c];
+        }
+    WriteImage(img, path);
+    std::printf("diag %s: false %zu (within 2 px of a mesh pixel %zu); nearest sample / h <0.25 %zu, <0.5 %zu, "
+                "<1 %zu, <1.5 %zu, <2 %zu, more %zu; depth > 2e-3 diag %zu (render in front %zu)\n",
+                label.c_str(), false_hits, fringe, dist_bins[0], dist_bins[1], dist_bins[2], dist_bins[3],
+                dist_bins[4], dist_bins[5], bad_depth, in_front);
+}
+
 int Main(int argc, char** argv) {
-    std::string data = SURFEL_SHARED_DATA_DIR, out = "bench/results-render-mesh", png;
+    std::string data = SURFEL_SHARED_DATA_DIR, out = "bench/results-render-mesh", png, diag_dir;
+    std::vector<std::string> only_views;
     std::vector<std::string> models = {"armadillo", "buddha", "bunny", "dragon", "horse", "igea", "lucy", "maxplanck"};
     std::vector<std::string> variants = {"fixed"};
     int size = 320;
@@ -316,6 +395,8 @@ int Main(int argc, char** argv) {
         else if (a == "--size") size = std::stoi(next());
         else if (a == "--no-poisson") poisson = false;
         else if (a == "--png") png = next();
+        else if (a == "--diag") diag_dir = next();
+        else if (a == "--views") only_views = Split(next());
         else {
             std::cerr << "unknown argument " << a << "\n";
             return 2;
@@ -328,8 +409,14 @@ int Main(int argc, char** argv) {
             return 2;
         }
     }
+#ifdef SURFEL_BENCH_OPEN3D
     open3d::utility::SetVerbosityLevel(open3d::utility::VerbosityLevel::Error);
+#else
+    if (poisson) std::cerr << "bench_render_mesh: built without Open3D: no Poisson columns (--no-poisson)\n";
+    poisson = false;
+#endif
     if (!png.empty()) std::filesystem::create_directories(png);
+    if (!diag_dir.empty()) std::filesystem::create_directories(diag_dir);
     std::ostringstream md, js;
     md << "| model | view | variant | agreement % | miss % | false % | p95 / diag | median / diag | time ms |"
           " Poisson agreement % | Poisson miss % | Poisson false % | Poisson p95 / diag |\n"
@@ -339,7 +426,10 @@ int Main(int argc, char** argv) {
     std::ostringstream notes;
     for (const std::string& m : models) {
         const std::string cloud_path = data + "/" + m + ".ply", mesh_path = data + "/" + m + "_mesh.ply";
-        if (!std::filesystem::exists(mesh_path)) continue;
+        if (!std::filesystem::exists(mesh_path)) {
+            std::cerr << "bench_render_mesh: no " << mesh_path << ": " << m << " skipped (--data DIR)\n";
+            continue;
+        }
         const PointCloud cloud = ReadPly(cloud_path);
         const PointCloud mesh = ReadPly(mesh_path);
         const MeshScene truth(mesh.positions, mesh.triangles);
@@ -356,7 +446,13 @@ int Main(int argc, char** argv) {
         views.emplace_back("thin close-up", ThinCloseUp(mesh, truth, size, size, &where));
         notes << "- " << m << ": thin close-up at " << where << "; Poisson " << peer.triangles << " triangles, "
               << int(peer.ms) << " ms (normals + reconstruction)\n";
+        std::unique_ptr<KdTree> tree;
+        if (!diag_dir.empty()) tree = std::make_unique<KdTree>(cloud.positions);
         for (const auto& [view, cam] : views) {
+            if (!only_views.empty() && std::find(only_views.begin(), only_views.end(), view) == only_views.end() &&
+                std::find(only_views.begin(), only_views.end(), view == "thin close-up" ? "closeup" : view) ==
+                    only_views.end())
+                continue;
             const std::vector<float> zt = truth.Depth(cam);
             Score ps;
             std::vector<float> zp;
@@ -379,6 +475,9 @@ int Main(int argc, char** argv) {
                 for (int y = 0; y < cam.height; ++y)
                     for (int x = 0; x < cam.width; ++x) z[std::size_t(y) * cam.width + x] = r.image.At(x, y, 4);
                 const Score s = Compare(zt, z, diag);
+                if (!diag_dir.empty())
+                    WriteDiag(zt, z, cam, *tree, r.stats.h, diag, diag_dir + "/" + tag + "_" + v + "_diag.png",
+                              m + " " + view + " " + v);
                 if (!png.empty()) {
                     WriteDepthPng(z, cam, png + "/" + tag + "_" + v + ".png");
                     WriteImage(r.image, png + "/" + tag + "_" + v + "_shaded.png");

@@ -539,7 +539,7 @@ RenderResult Render(const PointCloud& cloud, const RenderOptions& opt, const Pro
     if (opt.creases && HasSurfelPairs(cloud)) return RenderWithCreases(cloud, opt, progress);
     // Setup: the surface (neighbour search, ball radii); RenderLayers adds the BVH build.
     Stopwatch watch;
-    const AaSurface surface(cloud, opt.surface);
+    const AaSurface surface(cloud, opt.surface, progress);
     const double surface_ms = watch.ElapsedMs();
     SurfaceLayer layer;
     layer.surface = &surface;

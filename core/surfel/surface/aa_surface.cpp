@@ -21,6 +21,7 @@ struct AaSurface::Fit {
     LocalFrame frame;                     // origin r, normal n of the support plane
     PolyCoeffs g;                         // a_i(x, y) over the plane
     Vec3d normal_ref = Vec3d::Zero();     // weighted average of the cloud's normals (if any)
+    Vec3d mean = Vec3d::Zero();           // the weighted average a(r) of the fit's points, eq. 1
     std::array<float, 4> color{0, 0, 0, 1};
     bool valid = false;
 };
@@ -43,6 +44,11 @@ struct AaSurface::Impl {
     // AaBandwidth::kAdaptive (empty when fixed): h_j, 1 / h_j^2, and the gather scale of ball i,
     // the largest h_j of the points near it (a fit in ball i gathers within cutoff x that).
     std::vector<float> scale, inv_h2, reach;
+    // AaOptions::boundary (empty when boundary = 0): each point's sample spacing eta_j (notes
+    // 1.1.1, the ball_k-th neighbour) over the median spacing, for the local scale of a hit.
+    std::vector<float> relative_spacing;
+    // The local scale of ball i's boundary test (0 = not computed yet), filled on first need.
+    std::unique_ptr<std::atomic<float>[]> boundary_scale;
     float max_scale = 0.0f;
     std::vector<Vec3f> weight_normals;  // normal-aware weights (normal_sigma > 0)
     std::unique_ptr<UniformGrid> grid;
@@ -103,6 +109,7 @@ void AaOptions::Validate() const {
         InvalidField("bandwidth", "unknown kind " + std::to_string(static_cast<int>(bandwidth)));
     CheckRange("ball_h", ball_h, 0, 10);
     CheckRange("normal_sigma", normal_sigma, 0, 10);
+    CheckRange("boundary", boundary, 0, 10);
 }
 
 namespace {
@@ -138,7 +145,7 @@ void AdaptiveScales(const UniformGrid& grid, std::span<const Vec3f> pts, const S
 }
 }  // namespace
 
-AaSurface::AaSurface(const PointCloud& cloud, const AaOptions& options)
+AaSurface::AaSurface(const PointCloud& cloud, const AaOptions& options, const ProgressFn& progress)
     : impl_(std::make_unique<Impl>(cloud, options)) {
     AaOptions& o = impl_->opt;
     if (cloud.size() < 3) throw Error(ErrorCode::kInvalidArgument, "the surface needs at least 3 points, got " + std::to_string(cloud.size()));
@@ -176,6 +183,13 @@ AaSurface::AaSurface(const PointCloud& cloud, const AaOptions& options)
             }
         });
     }
+    if (o.boundary > 0) {
+        const float med = density.median_spacing > 0 ? density.median_spacing : 1.0f;
+        impl_->relative_spacing.resize(cloud.size());
+        for (std::size_t i = 0; i < cloud.size(); ++i) impl_->relative_spacing[i] = density.spacing[i] / med;
+        impl_->boundary_scale.reset(new std::atomic<float>[cloud.size()]);
+        for (std::size_t i = 0; i < cloud.size(); ++i) impl_->boundary_scale[i].store(0.0f, std::memory_order_relaxed);
+    }
     if (o.ball_h > 0)
         for (std::size_t i = 0; i < cloud.size(); ++i)
             impl_->ball_radius[i] = std::max(impl_->ball_radius[i], o.ball_h * PointScale(static_cast<std::uint32_t>(i)));
@@ -184,7 +198,9 @@ AaSurface::AaSurface(const PointCloud& cloud, const AaOptions& options)
             impl_->weight_normals = cloud.normals;
         } else {
             const KdTree tree(cloud.positions);
-            impl_->weight_normals = EstimateNormals(tree).normals;
+            // Only the caller's cancellation: its fractions are the caller's whole job's.
+            const ProgressFn poll = [&progress](double) { return !progress || progress(0.0); };
+            impl_->weight_normals = EstimateNormals(tree, {}, poll).normals;
         }
     }
     impl_->id = next_surface_id.fetch_add(1, std::memory_order_relaxed);
@@ -201,6 +217,26 @@ const AaOptions& AaSurface::options() const { return impl_->opt; }
 const PointCloud& AaSurface::cloud() const { return impl_->cloud; }
 float AaSurface::BallRadius(std::uint32_t i) const { return impl_->ball_radius[i]; }
 float AaSurface::PointScale(std::uint32_t i) const { return impl_->scale.empty() ? impl_->opt.h : impl_->scale[i]; }
+
+float AaSurface::BoundaryScale(std::uint32_t i) const {
+    if (!impl_->boundary_scale) return PointScale(i);
+    std::atomic<float>& cached = impl_->boundary_scale[i];
+    const float c = cached.load(std::memory_order_relaxed);
+    if (c > 0) return c;
+    // h x sum theta_j eta_j / sum theta_j / median eta, theta_j = exp(-|p_j - p_i|^2 / h^2) within
+    // 2 h (the same value whichever thread computes it).
+    const float h = impl_->opt.h, inv = 1.0f / (h * h);
+    const UniformGrid& g = *impl_->grid;
+    double sw = 0, ss = 0;
+    g.ForEachWithin(impl_->cloud.positions[i], std::min(2.0f * h, g.cell()), [&](std::uint32_t j, const Vec3f&, float d2) {
+        const double w = std::exp(-double(d2) * inv);
+        sw += w;
+        ss += w * impl_->relative_spacing[j];
+    });
+    const float v = sw > 0 ? static_cast<float>(h * ss / sw) : h;
+    cached.store(v, std::memory_order_relaxed);
+    return v;
+}
 const std::vector<Vec3f>& AaSurface::WeightNormals() const { return impl_->weight_normals; }
 
 namespace {
@@ -356,6 +392,7 @@ bool AaSurface::FitAt(const Vec3d& r, Fit* fit, float cutoff, bool attributes, s
     const Vec3d lambda = es.eigenvalues();
     if (!(lambda[0] < o.normal_ratio * lambda[1])) return false;  // normal not well defined
     fit->frame = LocalFrame::FromNormal(rf.cast<double>(), es.eigenvectors().col(0));
+    fit->mean = rf.cast<double>() + Vec3d(wm.x, wm.y, wm.z) / wm.w;
     // Step 2, polynomial: minimise sum (a_i(x_j, y_j) - f_j)^2 theta_j (eq. 10).
     nb.ToLocal(Vec3d::Zero(), fit->frame.u, fit->frame.v, fit->frame.n);
     PolyFit pf(o.degree, o.h);
@@ -477,6 +514,26 @@ std::optional<AaHit> AaSurface::IntersectInBall(std::uint32_t ball, const Vec3d&
             AaHit hit;
             hit.t = tn;
             hit.position = o + tn * d;
+            // The boundary (course notes, "surfaces from normals and weighted averages"): a hit
+            // whose weighted average lies farther than boundary x h from it along the surface has
+            // no points around it, only on one side: the fit extrapolates past the rim of a part.
+            // The threshold is in units of the local scale where the samples lie farther apart
+            // than h / 2: there an interior point's weighted average strays from it by chance
+            // (about 0.2 spacings: 2.5 standard deviations of 0.5 h at a spacing of h). The
+            // local scale of ball i is h times the Gaussian-weighted mean spacing around its
+            // centre over the median spacing (the notes' adaptive h(x) = h / rho(x), smoothed),
+            // never below h, so that the rims of evenly sampled parts keep the rule's threshold.
+            // It is computed once per ball, and only for balls with a hit that fails against h.
+            if (opt.boundary > 0) {
+                const Vec3d e = hit.position - fit.mean;
+                const Vec3d et = e - e.dot(fit.frame.n) * fit.frame.n;
+                const double b2 = double(opt.boundary) * opt.boundary, h0 = PointScale(ball);
+                const double e2 = et.squaredNorm();
+                if (e2 > b2 * h0 * h0) {
+                    const double hl = std::max(h0, double(BoundaryScale(ball)));
+                    if (e2 > b2 * hl * hl) return std::nullopt;
+                }
+            }
             const Vec3d l = fit.frame.ToLocal(hit.position);
             Vec3d n = fit.frame.NormalAt(fit.g, l.x(), l.y());
             const bool oriented = fit.normal_ref.squaredNorm() > 0;

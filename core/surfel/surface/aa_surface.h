@@ -13,6 +13,7 @@
 #include <vector>
 
 #include "surfel/base/point_cloud.h"
+#include "surfel/base/progress.h"
 #include "surfel/surface/poly_fit.h"
 
 namespace surfel {
@@ -37,10 +38,15 @@ enum class AaBandwidth {
 
 /// AaBandwidth::kAdaptive: the per-point scale lies within [1/kAdaptiveRange, kAdaptiveRange] x h.
 inline constexpr float kAdaptiveRange = 3.0f;
-/// AaOptions::normal_sigma of the normal-aware weights when they are asked for by name (the CLI's
-/// `--weights normal`, the job's NORMAL_AWARE): the best of 0.25, 0.5 and 1 on the buddha,
-/// dragon and Lucy (bench/results-render-mesh.md).
+/// AaOptions::normal_sigma of the normal-aware weights, the default (the CLI's `--weights normal`,
+/// the job's NORMAL_AWARE): the best of 0.25, 0.5 and 1 on the buddha, dragon and Lucy
+/// (bench/results-render-mesh.md).
 inline constexpr float kNormalAwareSigma = 0.5f;
+/// AaOptions::boundary, the default: about 1/sqrt(pi) = 0.56, the tangential distance from x to
+/// a(x) at the edge of a uniformly sampled half-plane (Gaussian weights exp(-d^2/h^2)); on samples
+/// spaced h/2 it puts the edge about a quarter spacing beyond the last row (0.4 cuts into real
+/// surface on the dragon: bench/results-render-mesh.md).
+inline constexpr float kSurfaceBoundary = 0.5f;
 
 struct AaOptions {
     float h = 0.0f;             ///< Gaussian scale; 0 = DefaultScale (2 x median spacing). Adaptive: the median point's scale.
@@ -55,18 +61,29 @@ struct AaOptions {
     /// 0 = the paper's ball alone. Where samples are sparse the k-th neighbour's ball can be too
     /// small for the iteration to settle in before it leaves the ball (a hole).
     float ball_h = 0.0f;
-    /// Thin sheets: 0 = the paper's weights. > 0: in the render's fits each neighbour's weight
+    /// Thin sheets: 0 = the paper's weights. > 0 (default kNormalAwareSigma): in the render's fits each neighbour's weight
     /// is also multiplied by exp(-((1 - n_j . n_i) / normal_sigma)^2), n_i the oriented normal of
     /// the ball the ray is in and n_j the neighbour's (the cloud's own normals, else estimated and
     /// oriented with EstimateNormals): where the two sheets of a thin part lie within the
     /// support, the fit keeps to the sheet of the ball (robust MLS: normal-aware weights).
-    float normal_sigma = 0.0f;
+    float normal_sigma = kNormalAwareSigma;
+    /// Boundary of the surface (course notes 6.3, "Surfaces from normals and weighted averages":
+    /// require ||x - a(x)|| below a threshold): a converged hit x is kept only where the weighted
+    /// average a(x) of its fit lies within boundary x h_i of it along the support plane (the
+    /// notes' distance for their degree-0 surface, where x - a(x) is tangential at f = 0; the
+    /// height component here is the fit's curvature, not a sign of a boundary). h_i is the
+    /// point's scale, raised where the samples around p_i lie farther apart than the median
+    /// spacing (BoundaryScale), so that chance offsets of sparse interiors are not taken for
+    /// edges. 0 = no boundary (the paper's surface, which
+    /// extrapolates up to a ball radius past the rim of every part).
+    float boundary = kSurfaceBoundary;
 
     /// Throws Error(kInvalidArgument, "<field>: <what>") for the first bad field, named as in the
     /// render job spec: "h" (finite, >= 0; 0 = auto), "precision" (finite, >= 0; 0 = auto),
     /// "degree" (0..2), "max_iterations" (1..kMaxSurfaceIterations), and, not in the job spec,
     /// "cutoff" (finite, >= 1), "normal_ratio" (0..1), "ball_k" (1..kMaxBallNeighbors), "bandwidth"
-    /// (a known kind), "ball_h" (0..10), "normal_sigma" (0..10).
+    /// (a known kind), "ball_h" (0..10), "normal_sigma" (0..10),
+    /// "boundary" (0..10).
     /// Example: "degree: must lie in 0..2, got 3". The default-constructed options are valid.
     void Validate() const;
 };
@@ -109,8 +126,11 @@ struct AaCounters {
 class AaSurface {
 public:
     /// Throws Error(kInvalidArgument) when `options` fail AaOptions::Validate(), the cloud has
-    /// fewer than 3 points, or h = 0 cannot be derived (all points coincide).
-    explicit AaSurface(const PointCloud& cloud, const AaOptions& options = {});
+    /// fewer than 3 points, or h = 0 cannot be derived (all points coincide). `progress` is polled
+    /// (with fraction 0) during the longest part of the setup, the normal estimation that the
+    /// normal-aware weights need for a cloud without normals; returning false throws
+    /// Error(kCancelled).
+    explicit AaSurface(const PointCloud& cloud, const AaOptions& options = {}, const ProgressFn& progress = {});
     ~AaSurface();
 
     float h() const;
@@ -122,6 +142,10 @@ public:
     float BallRadius(std::uint32_t i) const;
     /// The Gaussian scale of point i: h() when the bandwidth is fixed, h_i when adaptive.
     float PointScale(std::uint32_t i) const;
+    /// The local scale of ball i's boundary test (AaOptions::boundary): h x the Gaussian-weighted
+    /// mean sample spacing within 2h of p_i over the median spacing; PointScale(i) when the
+    /// boundary is off. Computed on first use and cached.
+    float BoundaryScale(std::uint32_t i) const;
     /// The normals the normal-aware weights use (the cloud's or estimated); empty when
     /// options().normal_sigma = 0.
     const std::vector<Vec3f>& WeightNormals() const;

@@ -174,6 +174,70 @@ TEST(ThinParts, ThinTorusTubeKeepsItsTwoSidesWithNormalWeights) {
     EXPECT_GT(p95_plain, 0.5 * r);
 }
 
+// The rendered edge near x = 1 of a cloud over [-1, 1]^2 (plates at z = 0 and above, h = kH),
+// seen from straight above: per image row (y within 0.1 of 0) the largest x of a pixel that hits,
+// as an offset from the edge of the sampled square, in units of h.
+std::vector<double> EdgeOffsets(const PointCloud& c, float boundary) {
+    RenderOptions ro;
+    ro.camera.eye = Vec3d(1.0, 0.0, 3.0);
+    ro.camera.target = Vec3d(1.0, 0.0, 0.0);
+    ro.camera.up = Vec3d(0, 1, 0);
+    ro.camera.width = ro.camera.height = 96;
+    ro.camera.fovy_deg = 4;  // about 0.21 x 0.21 around the edge: 0.044 h a pixel
+    ro.shadows = false;
+    ro.surface.h = static_cast<float>(kH);
+    ro.surface.boundary = boundary;
+    const RenderResult r = Render(c, ro);
+    const Camera::Frame f = ro.camera.MakeFrame();
+    std::vector<double> off;
+    for (int y = 0; y < 96; ++y) {
+        double edge = -1;
+        for (int x = 0; x < 96; ++x) {
+            const float t = r.image.At(x, y, 4);
+            if (std::isfinite(t)) edge = std::max(edge, (ro.camera.eye + double(t) * f.Direction(x + 0.5, y + 0.5)).x());
+        }
+        off.push_back((edge - 1.0) / kH);
+    }
+    return off;
+}
+
+double Median(std::vector<double> v) {
+    std::nth_element(v.begin(), v.begin() + v.size() / 2, v.end());
+    return v[v.size() / 2];
+}
+
+TEST(SurfaceBoundary, OpenPlateEndsWhereItsSamplesEnd) {
+    // The notes' boundary (||x - a(x)|| below a threshold, here kSurfaceBoundary x the local scale
+    // along the plane): the plate ends at the edge of its sampled square, to within a spacing
+    // (h / 2) on every row, as its random samples end there (measured: from 0.28 h inside to
+    // 0.46 h outside, median 0.02 h inside).
+    ShapeOptions so;
+    so.points = 6400;
+    so.normals = true;
+    const PointCloud plate = SampleShape(Shape::kPlane, so);
+    const std::vector<double> bounded = EdgeOffsets(plate, kSurfaceBoundary);
+    EXPECT_LT(*std::max_element(bounded.begin(), bounded.end()), 0.5);
+    EXPECT_LT(std::abs(Median(bounded)), 0.15);
+    EXPECT_GT(*std::min_element(bounded.begin(), bounded.end()), -0.5);
+    // The paper's surface has no boundary: the fits of the rim balls extrapolate the plane out to
+    // the balls' radii (measured: 0.55 to 1.11 h past the edge, median 0.85 h).
+    const std::vector<double> open = EdgeOffsets(plate, 0.0f);
+    EXPECT_GT(Median(open), 0.5);
+    EXPECT_GT(*std::min_element(open.begin(), open.end()), 0.25);
+}
+
+TEST(SurfaceBoundary, ThinSlabEndsAtItsRim) {
+    // The two plates 0.5 h apart, seen from above at their rim (normal-aware weights, the
+    // default): each fit keeps to its own sheet, so without a boundary the top sheet runs on past
+    // the rim like an open plate (measured: median 0.63 h, up to 0.84 h); with it the slab ends
+    // where its samples end (measured: 0.20 h inside to 0.20 h outside, median 0.07 h inside).
+    const PointCloud slab = Plates(6400, 0.5 * kH);
+    const std::vector<double> bounded = EdgeOffsets(slab, kSurfaceBoundary);
+    EXPECT_LT(*std::max_element(bounded.begin(), bounded.end()), 0.3);
+    EXPECT_LT(std::abs(Median(bounded)), 0.15);
+    EXPECT_GT(Median(EdgeOffsets(slab, 0.0f)), 0.5);
+}
+
 TEST(AdaptiveBandwidth, ScaleFollowsTheDensitySmoothly) {
     // A plate whose left half is sampled 4x as densely as its right: the spacing halves there,
     // and so does h_j (within 10 %, away from the seam); across the seam h_j changes over a few
