@@ -80,6 +80,9 @@ class WorkerProcess {
         throw std::runtime_error("surfel-worker did not start: " + Log());
     }
     ~WorkerProcess() { Kill(SIGKILL); }
+    /// SIGTERM and wait: the worker finishes what it was doing and exits 0. Returns the exit
+    /// status; from then on Log() is complete.
+    int Stop() { return Kill(SIGTERM); }
     int Kill(int sig) {
         if (pid_ <= 0) return -1;
         ::kill(pid_, sig);
@@ -153,6 +156,17 @@ class ScaleOutTest : public ::testing::Test {
     }
     std::string Blobs() const { return (work_ / "blobs").string(); }
     std::string Path(const std::string& name) const { return (dir_ / name).string(); }
+    /// Stops every worker that still runs (SIGTERM, exit 0 expected), so that their logs are
+    /// complete. A worker commits a job's end to the table, publishes the hint and only then logs
+    /// "job ID: SUCCEEDED in ..."; a watcher (and so the test) can see the job SUCCEEDED before
+    /// that line is written, so a log read while the worker runs may miss the last job's line.
+    /// The worker joins its job threads before it exits: after waitpid every line is there.
+    void StopWorkers() {
+        for (std::size_t w = 0; w < workers_.size(); ++w) {
+            const int rc = workers_[w]->Stop();
+            if (rc != -1) EXPECT_EQ(rc, 0) << "worker " << w;  // -1: killed earlier
+        }
+    }
     std::string AllWorkerLogs() const {
         std::string all;
         for (const auto& w : workers_) all += w->Log();
@@ -239,6 +253,7 @@ TEST_F(ScaleOutTest, MixedJobsAcrossTwoServersSucceedOnceWithSingleNodeBytes) {
         bytes.push_back(o.bytes);
     }
     std::printf("%d mixed jobs through 2 servers and 3 workers: %.0f ms\n", kJobs, MsSince(t0));
+    StopWorkers();  // their logs are complete only once they exited
     const std::string logs = AllWorkerLogs();
     for (const auto& id : ids) EXPECT_EQ(Count(logs, "job " + id + ": SUCCEEDED"), 1) << id;
     EXPECT_EQ(Cluster::Exec(url_, "SELECT COUNT(*) FROM jobs WHERE attempts > 0"), "0");
@@ -312,6 +327,7 @@ TEST_F(ScaleOutTest, KilledWorkerItsJobFinishesOnAnotherWithinLeasePlus5s) {
                 owner.c_str(), ms, kLeaseS);
     EXPECT_LT(ms, (kLeaseS + 5) * 1000);
     EXPECT_EQ(Cluster::Exec(url_, "SELECT attempts FROM jobs WHERE id = '" + id + "'"), "1");
+    StopWorkers();  // the finisher's line may follow the end the watcher saw
     int finishers = 0;
     for (int w = 0; w < 3; ++w)
         if (w != victim) finishers += Count(workers_[w]->Log(), "job " + id + ": SUCCEEDED");
