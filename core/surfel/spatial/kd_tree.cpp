@@ -12,7 +12,8 @@
 
 #include "surfel/base/error.h"
 
-#if defined(__SANITIZE_THREAD__)
+#if defined(__SANITIZE_THREAD__) || defined(SURFEL_TSAN_BUILD)
+// (SURFEL_TSAN_BUILD: the TSan build, which compiles this module itself without instrumentation.)
 #define SURFEL_UNDER_TSAN 1
 #elif defined(__has_feature)
 #if __has_feature(thread_sanitizer)
