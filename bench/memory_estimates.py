@@ -42,9 +42,17 @@ def main():
         ("render", "bunny.ply", ["--width", "2048", "--height", "2048"]),
         ("render", "person_scan.ply", ["--width", "1024", "--height", "1024"]),
         ("render", "dragon.ply", ["--width", "4096", "--height", "4096", "--no-shadows", "--png", os.path.join(tmp, "x.png")]),
+        ("render", "person_scan.ply", ["--width", "256", "--height", "256"]),
+        ("render", "lucy.ply", ["--width", "1024", "--height", "1024"]),
         ("simplify", "bunny_scans_merged.ply", ["--target", "20000"]),
         ("simplify", "person_scan.ply", ["--target", "5000", "--method", "voxel"]),
         ("simplify", "buddha_scan.ply", ["--target", "5000", "--method", "incremental"]),
+    ]
+    # Every simplification method on a large and a mid-sized scan (the estimate is per method).
+    for method in ["hierarchical", "incremental", "iterative", "particle", "voxel"]:
+        cases.append(("simplify", "bunny_scans_merged.ply", ["--target", "18000", "--method", method]))
+        cases.append(("simplify", "buddha_scan.ply", ["--target", "4000", "--method", method]))
+    cases += [
         ("resample", "bunny.ply", ["--target", "200000", "--iterations", "10"]),
         ("resample", "dragon_scan.ply", ["--target", "20000", "--iterations", "10"]),
         ("resample", "bunny_scan.ply", ["--method", "mls"]),

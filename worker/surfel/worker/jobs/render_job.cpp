@@ -13,14 +13,18 @@ namespace surfel::worker {
 namespace {
 
 // ---- Memory estimate constants (docs/memory.md; checked by bench/memory_estimates.py) --------
-constexpr std::uint64_t kRenderBytesPerPoint = 600;  ///< AaSurface neighbour data + Embree BVH
-/// The image plugin (OpenImageIO and its libraries, opened by the first render) and Embree's
-/// and TBB's arenas: measured ~100 MiB on a 512x512 render of bunny (bench/results-memory.md).
-constexpr std::uint64_t kRenderFixedBytes = 96ull << 20;
+/// Per point: the Adamson-Alexa surface's neighbour data, the packed balls and Embree's BVH.
+constexpr std::uint64_t kRenderBytesPerPoint = 140;
+/// Embree's and TBB's arenas and the EXR plugin (OpenEXR alone, opened by the first render).
+constexpr std::uint64_t kRenderFixedBytes = 6ull << 20;
 constexpr std::uint64_t kImageBytesPerPixel = 32;    ///< 8 float channels
-constexpr std::uint64_t kExrFloatBytesPerPixel = 32; ///< the codec's float copy; zip output below it
-constexpr std::uint64_t kExrHalfBytesPerPixel = 16;
+constexpr std::uint64_t kExrFloatBytesPerPixel = 8;  ///< the codec's line buffers; it reads our channels
+constexpr std::uint64_t kExrHalfBytesPerPixel = 16;  ///< the channels converted to half
 constexpr std::uint64_t kPngBytesPerPixel = 6;       ///< 8-bit RGB buffer + the PNG file
+/// PNG goes through the OpenImageIO plugin, whose ~260 libraries a first PNG loads.
+constexpr std::uint64_t kPngFixedBytes = 96ull << 20;
+// Fitted to peak RSS (bench/memory_estimates.py -> bench/results-memory.md): bunny 512^2 and
+// 2048^2, person_scan 256^2 and 1024^2, lucy 1024^2, dragon 4096^2 PNG, all within 0.9-1.25.
 
 [[noreturn]] void Bad(const std::string& field, const std::string& what) { InvalidField("render." + field, what); }
 
@@ -267,7 +271,8 @@ public:
         if (job.format() == v1::RenderJob::EXR_HALF) encode_per_pixel = kExrHalfBytesPerPixel;
         if (job.format() == v1::RenderJob::PNG) encode_per_pixel = kPngBytesPerPixel;
         const CloudFacts& in = inputs[0];
-        const std::uint64_t work = kRenderFixedBytes + kRenderBytesPerPoint * in.points + pixels * (kImageBytesPerPixel + encode_per_pixel);
+        const std::uint64_t work = kRenderFixedBytes + (job.format() == v1::RenderJob::PNG ? kPngFixedBytes : 0) +
+                                   kRenderBytesPerPoint * in.points + pixels * (kImageBytesPerPixel + encode_per_pixel);
         return CloudBytes(in) + std::max(in.file_bytes, work);
     }
 

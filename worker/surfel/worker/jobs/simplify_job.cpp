@@ -11,8 +11,19 @@
 namespace surfel::worker {
 namespace {
 
-/// Memory estimate: bytes per input point of the simplification's own data (docs/memory.md).
-constexpr std::uint64_t kSimplifyBytesPerPoint = 80;
+/// Memory estimate: bytes per input point of each method's own data, the default quality report
+/// included (docs/memory.md); fitted to peak RSS on bunny_scans_merged (362k points) and
+/// buddha_scan (78k) with every method (bench/results-memory.md).
+std::uint64_t SimplifyBytesPerPoint(SimplifyMethod method) {
+    switch (method) {
+        case SimplifyMethod::kHierarchical: return 80;
+        case SimplifyMethod::kIncremental: return 140;  // region growing's neighbour lists
+        case SimplifyMethod::kIterative: return 600;    // quadrics, the pair graph and its heap
+        case SimplifyMethod::kParticle: return 240;     // the particle engine on the input's MLS surface
+        case SimplifyMethod::kVoxel: return 80;
+    }
+    return 600;
+}
 
 // ---- proto -> SimplifyOptions ----------------------------------------------------------------
 // Proto3's "0 / unset means the default" is resolved here; every default and limit is core's.
@@ -95,12 +106,13 @@ public:
     }
 
     /// The cloud; per input point the neighbour graph, covariances and the method's clusters or
-    /// heap (kSimplifyBytesPerPoint); the output cloud and its PLY bytes.
+    /// heap (SimplifyBytesPerPoint); the output cloud and its PLY bytes.
     std::uint64_t EstimateMemory(const v1::JobSpec& spec, std::span<const CloudFacts> inputs) const override {
         const CloudFacts& in = inputs[0];
         const std::uint64_t out = spec.simplify().target() ? std::min<std::uint64_t>(spec.simplify().target(), in.points)
                                                            : in.points;
-        const std::uint64_t work = kSimplifyBytesPerPoint * in.points + 2 * out * PointBytes(in.attributes);
+        const std::uint64_t per_point = SimplifyBytesPerPoint(ToSimplifyOptions(spec.simplify()).method);
+        const std::uint64_t work = per_point * in.points + 2 * out * PointBytes(in.attributes);
         return CloudBytes(in) + std::max(in.file_bytes, work);
     }
 
