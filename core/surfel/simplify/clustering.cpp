@@ -4,6 +4,7 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <memory>
 #include <numeric>
 #include <queue>
 
@@ -82,14 +83,12 @@ std::size_t SplitItems(std::span<Item> items, const Moments& m, const Spread& s)
     return k;
 }
 
-std::vector<Item> MakeItems(std::span<const Vec3f> points) {
+void FillItems(std::span<const Vec3f> points, std::span<Item> items) {
     Vec3d ref = Vec3d::Zero();
     for (const Vec3f& p : points) ref += p.cast<double>();
     if (!points.empty()) ref /= static_cast<double>(points.size());
     const Vec3f r = ref.cast<float>();
-    std::vector<Item> items(points.size());
     for (std::size_t i = 0; i < points.size(); ++i) items[i] = {points[i] - r, static_cast<std::uint32_t>(i)};
-    return items;
 }
 
 // A node of the split tree: items[begin, end), their centroid c and scatter S = sum (p - c)(p - c)^T
@@ -298,9 +297,12 @@ void SplitAbove(std::span<Item> items, std::span<Item> scratch, Node node, std::
 
 Clustering HierarchicalClustering(std::span<const Vec3f> points, const SimplifyOptions& options,
                                   ProgressTracker& progress) {
-    std::vector<Item> items = MakeItems(points);
-    std::vector<Item> scratch(items.size());
     const auto n = static_cast<std::uint32_t>(points.size());
+    // The two item buffers, not zeroed first (every item is written before it is read).
+    const auto item_buffer = std::make_unique_for_overwrite<Item[]>(n);
+    const auto scratch_buffer = std::make_unique_for_overwrite<Item[]>(n);
+    const std::span<Item> items(item_buffer.get(), n), scratch(scratch_buffer.get(), n);
+    FillItems(points, items);
     std::vector<Node> leaves;
     if (options.target > 0) {
         // Priority-queue variant (notes 2.1.2, [BW00, SG01]): always split the cluster of highest
@@ -316,7 +318,7 @@ Clustering HierarchicalClustering(std::span<const Vec3f> points, const SimplifyO
             SplitAbove(items, scratch, root, threshold, local);
             for (auto& l : local) nodes.insert(nodes.end(), l.begin(), l.end());
             if (nodes.size() > options.target) {  // an unbalanced cloud overshot: start over
-                items = MakeItems(points);
+                FillItems(points, items);
                 nodes.assign(1, MakeNode(items, 0, n, false));
             }
             progress.Advance(0.5);
