@@ -4,14 +4,18 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <memory>
 #include <numeric>
 #include <queue>
 
+#include <tbb/blocked_range.h>
 #include <tbb/enumerable_thread_specific.h>
+#include <tbb/parallel_for.h>
 #include <tbb/parallel_invoke.h>
 
 #include "surfel/base/error.h"
 #include "surfel/simplify/simplify_internal.h"
+#include "surfel/simplify/split_pass.h"
 #include "surfel/spatial/kd_tree.h"
 
 namespace surfel::detail {
@@ -48,6 +52,7 @@ struct Item {
     Vec3f p;  // relative to the cloud's reference point (better conditioned moments)
     std::uint32_t id;
 };
+static_assert(sizeof(Item) == 16, "split_pass.h reads items as {float x, y, z; uint32 id}");
 
 Moments MomentsOf(std::span<const Item> items) {
     Moments m;
@@ -78,14 +83,12 @@ std::size_t SplitItems(std::span<Item> items, const Moments& m, const Spread& s)
     return k;
 }
 
-std::vector<Item> MakeItems(std::span<const Vec3f> points) {
+void FillItems(std::span<const Vec3f> points, std::span<Item> items) {
     Vec3d ref = Vec3d::Zero();
     for (const Vec3f& p : points) ref += p.cast<double>();
     if (!points.empty()) ref /= static_cast<double>(points.size());
     const Vec3f r = ref.cast<float>();
-    std::vector<Item> items(points.size());
     for (std::size_t i = 0; i < points.size(); ++i) items[i] = {points[i] - r, static_cast<std::uint32_t>(i)};
-    return items;
 }
 
 // A node of the split tree: items[begin, end), their centroid c and scatter S = sum (p - c)(p - c)^T
@@ -93,9 +96,11 @@ std::vector<Item> MakeItems(std::span<const Vec3f> points) {
 // so each node's statistics are exact sums over its own items, well conditioned at every depth.
 struct Node {
     std::uint32_t begin = 0, end = 0;
+    bool in_scratch = false;  // which of the two item buffers holds items[begin, end) (splits alternate)
     Eigen::Vector3d c = Eigen::Vector3d::Zero();
     Eigen::Matrix3d S = Eigen::Matrix3d::Zero();
-    Spread spread;
+    Spread spread;  // valid when `analyzed` (uniform priorities need none: EnsureSpread)
+    bool analyzed = false;
     double priority = 0.0;
     std::size_t size() const { return end - begin; }
 };
@@ -111,17 +116,26 @@ Spread AnalyzeScatter(const Eigen::Matrix3d& S, std::size_t n) {
     return s;
 }
 
-double Priority(const Node& node, bool adaptive) {
-    const double n = static_cast<double>(node.size());
-    if (node.size() < 2 || node.spread.eigenvalues[2] <= 0.0) return -1.0;  // cannot split
-    // Uniform: split the largest cluster. Adaptive: weight by surface variation, with a small
-    // floor so that flat regions are still split by size once curved ones are fine enough.
-    return adaptive ? n * (node.spread.Variation() + 1e-3) : n;
+void EnsureSpread(Node& node) {
+    if (node.analyzed) return;
+    node.spread = AnalyzeScatter(node.S, node.size());
+    node.analyzed = true;
 }
 
+// Uniform: split the largest cluster; its spread (the eigen solve) waits until the node is split
+// or becomes a leaf whose normal is wanted, and a node with all points equal (no spread) is found
+// out when it is split. Adaptive: weight by surface variation, with a small floor so that flat
+// regions are still split by size once curved ones are fine enough.
 void Finish(Node& node, bool adaptive) {
-    node.spread = AnalyzeScatter(node.S, node.size());
-    node.priority = Priority(node, adaptive);
+    const double n = static_cast<double>(node.size());
+    node.analyzed = false;
+    if (!adaptive) {
+        node.priority = node.size() < 2 ? -1.0 : n;
+        return;
+    }
+    EnsureSpread(node);
+    node.priority = node.size() < 2 || node.spread.eigenvalues[2] <= 0.0 ? -1.0  // cannot split
+                                                                         : n * (node.spread.Variation() + 1e-3);
 }
 
 // Sums of d = p - o and d d^T over items (double accumulators), for a node's exact statistics.
@@ -145,22 +159,6 @@ struct Sums {
     }
 };
 
-// Sums of items[begin, end) about o, ten scalar accumulators.
-Sums SumsAbout(std::span<const Item> items, std::uint32_t begin, std::uint32_t end, const Vec3f& o) {
-    double sx = 0, sy = 0, sz = 0, sxx = 0, sxy = 0, sxz = 0, syy = 0, syz = 0, szz = 0;
-    for (std::uint32_t i = begin; i < end; ++i) {
-        const Vec3f& p = items[i].p;
-        const double x = double(p.x() - o.x()), y = double(p.y() - o.y()), z = double(p.z() - o.z());
-        sx += x, sy += y, sz += z;
-        sxx += x * x, sxy += x * y, sxz += x * z, syy += y * y, syz += y * z, szz += z * z;
-    }
-    Sums s;
-    s.n = double(end - begin);
-    s.d[0] = sx, s.d[1] = sy, s.d[2] = sz;
-    s.dd[0] = sxx, s.dd[1] = sxy, s.dd[2] = sxz, s.dd[3] = syy, s.dd[4] = syz, s.dd[5] = szz;
-    return s;
-}
-
 Node MakeNode(std::span<const Item> items, std::uint32_t begin, std::uint32_t end, bool adaptive) {
     Node node;
     node.begin = begin;
@@ -174,48 +172,54 @@ Node MakeNode(std::span<const Item> items, std::uint32_t begin, std::uint32_t en
     return node;
 }
 
-// Splits `node` at its centroid across v2 (notes 2.1.2): the side test and a branch-free
-// partition through `scratch` (the same index range: concurrent splits of disjoint nodes never
-// share it), then each child's sums over its own contiguous items.
-bool SplitNode(std::span<Item> items, std::span<Item> scratch, const Node& node, bool adaptive, Node& left,
-               Node& right) {
+// The buffer that holds a node's items.
+std::span<Item> BufferOf(const Node& node, std::span<Item> items, std::span<Item> scratch) {
+    return node.in_scratch ? scratch : items;
+}
+
+// Splits `node` at its centroid across v2 (notes 2.1.2) in one pass over its items: the side
+// test, a branch-free partition into the other buffer (the same index range: concurrent splits of
+// disjoint nodes never share it; the children live there, so nothing is copied back), and each
+// child's sums about the node's centroid over its own items (exact statistics at every depth:
+// deriving one side as the node's minus the other's doubles the centroid's error at every level).
+// Each side's sums add its own items' terms in the order they are visited (split_pass.h: an AVX2
+// build and a baseline one, the same bits).
+bool SplitNode(std::span<Item> items, std::span<Item> scratch, Node& node, bool adaptive, Node& left, Node& right) {
     if (node.priority < 0) return false;
+    EnsureSpread(node);
+    if (node.spread.eigenvalues[2] <= 0.0) return false;  // all points equal
     const Vec3f c = node.c.cast<float>();
     const Vec3f axis = node.spread.v2.cast<float>();
-    Item* lo = scratch.data() + node.begin;
-    Item* hi = scratch.data() + node.end;
-    // The side test as p . axis < c . axis (one dot product a point).
-    const float ax = axis.x(), ay = axis.y(), az = axis.z(), cut = c.dot(axis);
-    for (std::uint32_t i = node.begin; i < node.end; ++i) {
-        const Item it = items[i];
-        const bool is_neg = it.p.x() * ax + it.p.y() * ay + it.p.z() * az < cut;
-        Item* slot = is_neg ? lo : hi - 1;
-        *slot = it;
-        lo += is_neg;
-        hi -= !is_neg;
-    }
-    auto k = static_cast<std::uint32_t>(lo - (scratch.data() + node.begin));
+    const std::span<Item> src = BufferOf(node, items, scratch);
+    const std::span<Item> dst = node.in_scratch ? items : scratch;
+    // The side test as p . axis < c . axis (one dot product a point); the sums about c.
+    const float o[3] = {c.x(), c.y(), c.z()}, ax[3] = {axis.x(), axis.y(), axis.z()};
+    double sums[18];
+    std::uint32_t k = split_pass::Best().split(src.data() + node.begin, node.end - node.begin, dst.data() + node.begin,
+                                               o, ax, c.dot(axis), sums);
     const std::uint32_t size = node.end - node.begin;
     if (k == 0 || k == size) {
-        // All on one side in float arithmetic: split at the median projection instead.
-        std::span<Item> span = items.subspan(node.begin, size);
+        // All on one side in float arithmetic: split at the median projection instead (in the
+        // node's own buffer).
+        std::span<Item> span = src.subspan(node.begin, size);
         k = size / 2;
         std::nth_element(span.begin(), span.begin() + k, span.end(), [&](const Item& a, const Item& b) {
             const float pa = a.p.dot(axis), pb = b.p.dot(axis);
             return pa < pb || (pa == pb && a.id < b.id);
         });
         if (span[k].p == span[0].p && span[k].p == span[size - 1].p) return false;
-        left = MakeNode(items, node.begin, node.begin + k, adaptive);
-        right = MakeNode(items, node.begin + k, node.end, adaptive);
+        left = MakeNode(src, node.begin, node.begin + k, adaptive);
+        right = MakeNode(src, node.begin + k, node.end, adaptive);
+        left.in_scratch = right.in_scratch = node.in_scratch;
         return true;
     }
-    std::copy(scratch.begin() + node.begin, scratch.begin() + node.end, items.begin() + node.begin);
-    // Each child's sums over its own items about the node's centroid: exact statistics at every
-    // depth (deriving one side as the node's minus the other's doubles the centroid's error at
-    // every level).
-    const Sums neg = SumsAbout(items, node.begin, node.begin + k, c), pos = SumsAbout(items, node.begin + k, node.end, c);
+    Sums neg, pos;
+    neg.n = double(k), pos.n = double(size - k);
+    std::copy(sums, sums + 3, neg.d), std::copy(sums + 3, sums + 9, neg.dd);
+    std::copy(sums + 9, sums + 12, pos.d), std::copy(sums + 12, sums + 18, pos.dd);
     left.begin = node.begin, left.end = node.begin + k;
     right.begin = node.begin + k, right.end = node.end;
+    left.in_scratch = right.in_scratch = !node.in_scratch;
     neg.To(c, left);
     pos.To(c, right);
     Finish(left, adaptive);
@@ -223,7 +227,8 @@ bool SplitNode(std::span<Item> items, std::span<Item> scratch, const Node& node,
     return true;
 }
 
-double MaxPlaneDistance(std::span<const Item> items, const Node& node) {
+double MaxPlaneDistance(std::span<const Item> items, Node& node) {
+    EnsureSpread(node);
     const Vec3f c = node.c.cast<float>();
     const Vec3f n = node.spread.v0.cast<float>();
     double d = 0.0;
@@ -233,24 +238,36 @@ double MaxPlaneDistance(std::span<const Item> items, const Node& node) {
 
 // Leaves in order of their first item; each cluster's normal is its covariance's v0 (notes 1.2:
 // the direction of least variation of the cluster's points), unoriented.
-Clustering LabelsFromNodes(const std::vector<Item>& items, std::vector<Node>& leaves, std::size_t n) {
-    std::sort(leaves.begin(), leaves.end(), [](const Node& a, const Node& b) { return a.begin < b.begin; });
+Clustering LabelsFromNodes(std::span<const Item> items, std::span<const Item> scratch, std::vector<Node>& leaves,
+                           std::size_t n, bool normals) {
+    // Leaves by first item (disjoint ranges: distinct keys), sorted as (begin, leaf) pairs.
+    std::vector<std::pair<std::uint32_t, std::uint32_t>> order(leaves.size());
+    for (std::size_t c = 0; c < leaves.size(); ++c) order[c] = {leaves[c].begin, static_cast<std::uint32_t>(c)};
+    std::sort(order.begin(), order.end());
+    const auto buffer = [&](const Node& leaf) { return leaf.in_scratch ? scratch : items; };
     Clustering out;
     out.label.assign(n, 0);
-    for (std::size_t c = 0; c < leaves.size(); ++c)
-        for (std::uint32_t i = leaves[c].begin; i < leaves[c].end; ++i) out.label[items[i].id] = static_cast<std::uint32_t>(c);
+    for (std::size_t c = 0; c < order.size(); ++c) {
+        const Node& leaf = leaves[order[c].second];
+        const std::span<const Item> buf = buffer(leaf);
+        for (std::uint32_t i = leaf.begin; i < leaf.end; ++i) out.label[buf[i].id] = static_cast<std::uint32_t>(c);
+    }
     out.count = Compact(out.label);
+    if (!normals) return out;
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, leaves.size(), 256), [&](const tbb::blocked_range<std::size_t>& r) {
+        for (std::size_t c = r.begin(); c != r.end(); ++c) EnsureSpread(leaves[c]);
+    });
     // Compact numbers clusters by their smallest input index; normals follow that numbering.
     out.normals.assign(out.count, Vec3f::Zero());
-    for (std::size_t c = 0; c < leaves.size(); ++c) {
-        const Node& leaf = leaves[c];
+    for (std::size_t c = 0; c < order.size(); ++c) {
+        const Node& leaf = leaves[order[c].second];
         if (leaf.size() == 0) continue;
         const Spread& sp = leaf.spread;
         // A normal needs a patch: leave small (under 5 points), elongated (lambda_1 < lambda_2 / 10)
         // or thick (lambda_0 > lambda_1 / 2) clusters to the caller's estimate (zero here).
         const bool planar = leaf.size() >= 5 && sp.eigenvalues[1] > 0.1 * sp.eigenvalues[2] &&
                             sp.eigenvalues[0] < 0.5 * sp.eigenvalues[1];
-        out.normals[out.label[items[leaf.begin].id]] = planar ? Vec3f(sp.v0.cast<float>()) : Vec3f::Zero();
+        out.normals[out.label[buffer(leaf)[leaf.begin].id]] = planar ? Vec3f(sp.v0.cast<float>()) : Vec3f::Zero();
     }
     return out;
 }
@@ -280,14 +297,18 @@ void SplitAbove(std::span<Item> items, std::span<Item> scratch, Node node, std::
 
 Clustering HierarchicalClustering(std::span<const Vec3f> points, const SimplifyOptions& options,
                                   ProgressTracker& progress) {
-    std::vector<Item> items = MakeItems(points);
-    std::vector<Item> scratch(items.size());
     const auto n = static_cast<std::uint32_t>(points.size());
+    // The two item buffers, not zeroed first (every item is written before it is read).
+    const auto item_buffer = std::make_unique_for_overwrite<Item[]>(n);
+    const auto scratch_buffer = std::make_unique_for_overwrite<Item[]>(n);
+    const std::span<Item> items(item_buffer.get(), n), scratch(scratch_buffer.get(), n);
+    FillItems(points, items);
     std::vector<Node> leaves;
     if (options.target > 0) {
         // Priority-queue variant (notes 2.1.2, [BW00, SG01]): always split the cluster of highest
         // priority until there are exactly `target` clusters. The queue holds indices into `nodes`.
         std::vector<Node> nodes;
+        nodes.reserve(options.target + 1);  // the queue ends with target nodes: no regrowth
         const Node root = MakeNode(items, 0, n, options.adaptive);
         if (!options.adaptive) {
             // Uniform: phase 1 in parallel up to a size the queue surely passes (leaves of at
@@ -297,25 +318,31 @@ Clustering HierarchicalClustering(std::span<const Vec3f> points, const SimplifyO
             SplitAbove(items, scratch, root, threshold, local);
             for (auto& l : local) nodes.insert(nodes.end(), l.begin(), l.end());
             if (nodes.size() > options.target) {  // an unbalanced cloud overshot: start over
-                items = MakeItems(points);
+                FillItems(points, items);
                 nodes.assign(1, MakeNode(items, 0, n, false));
             }
             progress.Advance(0.5);
         } else {
             nodes.push_back(root);
         }
-        using Entry = std::pair<double, std::uint32_t>;  // (priority, node)
-        const auto by_priority = [&](const Entry& a, const Entry& b) {
-            if (a.first != b.first) return a.first < b.first;
-            return nodes[a.second].begin > nodes[b.second].begin;  // deterministic tie-break
+        // The node's first item rides in the entry (a node's range does not change while it is
+        // queued): the tie-break of equal priorities, frequent with sizes, reads no node.
+        struct Entry {
+            double priority;
+            std::uint32_t begin, node;
+        };
+        const auto by_priority = [](const Entry& a, const Entry& b) {
+            if (a.priority != b.priority) return a.priority < b.priority;
+            return a.begin > b.begin;  // deterministic tie-break
         };
         std::vector<Entry> heap;
-        for (std::uint32_t i = 0; i < nodes.size(); ++i) heap.push_back({nodes[i].priority, i});
+        heap.reserve(options.target + 1);
+        for (std::uint32_t i = 0; i < nodes.size(); ++i) heap.push_back({nodes[i].priority, nodes[i].begin, i});
         std::make_heap(heap.begin(), heap.end(), by_priority);
         std::size_t done_since_check = 0, count = heap.size();
         while (!heap.empty() && count < options.target) {
             std::pop_heap(heap.begin(), heap.end(), by_priority);
-            const std::uint32_t top = heap.back().second;
+            const std::uint32_t top = heap.back().node;
             heap.pop_back();
             Node a, b;
             if (!SplitNode(items, scratch, nodes[top], options.adaptive, a, b)) {
@@ -324,9 +351,9 @@ Clustering HierarchicalClustering(std::span<const Vec3f> points, const SimplifyO
             }
             nodes[top] = a;
             nodes.push_back(b);
-            heap.push_back({a.priority, top});
+            heap.push_back({a.priority, a.begin, top});
             std::push_heap(heap.begin(), heap.end(), by_priority);
-            heap.push_back({b.priority, static_cast<std::uint32_t>(nodes.size() - 1)});
+            heap.push_back({b.priority, b.begin, static_cast<std::uint32_t>(nodes.size() - 1)});
             std::push_heap(heap.begin(), heap.end(), by_priority);
             ++count;
             if (++done_since_check == 4096) {
@@ -334,7 +361,7 @@ Clustering HierarchicalClustering(std::span<const Vec3f> points, const SimplifyO
                 done_since_check = 0;
             }
         }
-        for (const Entry& e : heap) leaves.push_back(nodes[e.second]);
+        for (const Entry& e : heap) leaves.push_back(nodes[e.node]);
     } else {
         // Recursive variant: split while larger than n_max, more varied than sigma_max
         // (adaptive) or farther from the cluster plane than the error bound.
@@ -346,7 +373,7 @@ Clustering HierarchicalClustering(std::span<const Vec3f> points, const SimplifyO
             stack.pop_back();
             bool split = node.size() > n_max;
             if (!split && options.adaptive) split = node.spread.Variation() > options.max_variation;
-            if (!split && options.error > 0) split = MaxPlaneDistance(items, node) > options.error;
+            if (!split && options.error > 0) split = MaxPlaneDistance(BufferOf(node, items, scratch), node) > options.error;
             Node a, b;
             if (split && SplitNode(items, scratch, node, options.adaptive, a, b)) {
                 stack.push_back(std::move(b));
@@ -358,7 +385,7 @@ Clustering HierarchicalClustering(std::span<const Vec3f> points, const SimplifyO
             leaves.push_back(std::move(node));
         }
     }
-    return LabelsFromNodes(items, leaves, n);
+    return LabelsFromNodes(items, scratch, leaves, n, !options.positions_only);
 }
 
 // ---------------------------------------------------------------------------------------------

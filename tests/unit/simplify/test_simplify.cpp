@@ -1,11 +1,15 @@
 #include <gtest/gtest.h>
 #include <tbb/global_control.h>
 
+#include <algorithm>
 #include <cmath>
+#include <cstring>
+#include <random>
 
 #include "surfel/base/error.h"
 #include "surfel/base/shapes.h"
 #include "surfel/simplify/simplify.h"
+#include "surfel/simplify/split_pass.h"
 #include "surfel/spatial/kd_tree.h"
 #include "surfel/surface/local_analysis.h"
 #include "iterative_reference.h"
@@ -216,6 +220,69 @@ TEST(Simplify, HierarchicalParallelSplitsGiveTheSameClustersWhateverTheThreadCou
         EXPECT_EQ(one.cloud.positions, many.cloud.positions) << target;
         EXPECT_EQ(one.cloud.normals, many.cloud.normals) << target;
         EXPECT_EQ(one.cloud.radii, many.cloud.radii) << target;
+    }
+}
+
+// The split pass of hierarchical clustering (split_pass.h): the AVX2 build (where the CPU has it)
+// and the baseline give the same bits, and both match a plain loop: the negative side in order at
+// the front, the positive side from the end backwards, each side's sums about o over its own items.
+TEST(Simplify, HierarchicalSplitPassBuildsAgreeToTheBitAndMatchAPlainLoop) {
+    struct Item {
+        float x, y, z;
+        std::uint32_t id;
+    };
+    std::mt19937_64 rng(7);
+    const auto uniform = [&](double lo, double hi) { return lo + (hi - lo) * double(rng() >> 11) * 0x1p-53; };
+    std::vector<Item> items(1003);
+    for (std::uint32_t i = 0; i < items.size(); ++i)
+        items[i] = {float(uniform(-1, 1)), float(uniform(-2, 2)), float(uniform(0, 1)), i};
+    items[5] = items[6] = {0.25f, 0.5f, 0.125f, 5};  // on the cut plane below: positive (not < cut)
+    items[6].id = 6;
+    const float o[3] = {0.1f, -0.2f, 0.3f}, axis[3] = {0.6f, 0.0f, 0.8f};
+    const float cut = 0.25f * 0.6f + 0.5f * 0.0f + 0.125f * 0.8f;
+    const auto run = [&](const split_pass::Kernels& k, std::vector<Item>& dst, double* sums) {
+        dst.assign(items.size(), Item{});
+        return k.split(items.data(), items.size(), dst.data(), o, axis, cut, sums);
+    };
+    std::vector<Item> base, best;
+    double sb[18], sv[18];
+    const std::uint32_t kb = run(split_pass::Baseline(), base, sb);
+    const std::uint32_t kv = run(split_pass::Best(), best, sv);
+    EXPECT_EQ(kb, kv) << split_pass::Best().isa;
+    EXPECT_EQ(std::memcmp(base.data(), best.data(), base.size() * sizeof(Item)), 0) << split_pass::Best().isa;
+    EXPECT_EQ(std::memcmp(sb, sv, sizeof sb), 0) << split_pass::Best().isa;
+
+    std::vector<Item> neg, pos;
+    double ref[18] = {};
+    for (const Item& it : items) {
+        const bool is_neg = it.x * axis[0] + it.y * axis[1] + it.z * axis[2] < cut;
+        (is_neg ? neg : pos).push_back(it);
+        const double x = double(it.x - o[0]), y = double(it.y - o[1]), z = double(it.z - o[2]);
+        double* t = ref + (is_neg ? 0 : 9);
+        const double terms[9] = {x, y, z, x * x, x * y, x * z, y * y, y * z, z * z};
+        for (int j = 0; j < 9; ++j) t[j] += terms[j];
+    }
+    ASSERT_EQ(kb, neg.size());
+    EXPECT_GT(neg.size(), 300u);
+    EXPECT_GT(pos.size(), 300u);
+    for (std::size_t i = 0; i < neg.size(); ++i) EXPECT_EQ(base[i].id, neg[i].id);
+    for (std::size_t i = 0; i < pos.size(); ++i) EXPECT_EQ(base[base.size() - 1 - i].id, pos[i].id);
+    for (int j = 0; j < 18; ++j) EXPECT_NEAR(sb[j], ref[j], 1e-12 * (1.0 + std::abs(ref[j]))) << j;
+}
+
+TEST(Simplify, HierarchicalKeepsCoincidentPointsTogether) {
+    // 4 distinct positions, 50 copies each: a cluster of equal points has no spread and is never
+    // split, so the target of 4 gives the 4 positions and a larger one cannot give more.
+    PointCloud c;
+    const Vec3f corners[4] = {{0, 0, 0}, {1, 0, 0}, {0, 1, 0}, {0, 0, 1}};
+    for (int k = 0; k < 50; ++k)
+        for (const Vec3f& p : corners) c.positions.push_back(p);
+    for (const std::size_t target : {4u, 7u}) {
+        const SimplifyResult r = RunSimplify(c, SimplifyMethod::kHierarchical, target);
+        ASSERT_EQ(r.cloud.size(), 4u) << target;
+        for (const Vec3f& p : corners)
+            EXPECT_NE(std::find(r.cloud.positions.begin(), r.cloud.positions.end(), p), r.cloud.positions.end())
+                << target << " " << p.transpose();
     }
 }
 
