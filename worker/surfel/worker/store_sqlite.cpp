@@ -2,8 +2,12 @@
 #include <SQLiteCpp/SQLiteCpp.h>
 #include <sqlite3.h>
 
+#include <algorithm>
+#include <chrono>
 #include <filesystem>
 #include <mutex>
+#include <string>
+#include <thread>
 
 #include "surfel/base/error.h"
 #include "surfel/worker/job_state.h"
@@ -36,6 +40,28 @@ void BindRecord(SQLite::Statement& q, int index, const std::string& blob) {
     q.bind(index, blob.data(), static_cast<int>(blob.size()));
 }
 
+/// The busy timeout of every connection, ms.
+constexpr int kBusyTimeoutMs = 5000;
+
+/// Runs `fn` again while SQLite answers SQLITE_BUSY, up to kBusyTimeoutMs. SQLite returns BUSY at
+/// once, without calling the busy handler, where waiting could deadlock: a connection whose read
+/// snapshot is older than another connection's commit cannot upgrade it to a write (two openers
+/// of a new file both running CREATE TABLE IF NOT EXISTS), and a switch to WAL meets another
+/// opener. Every step `fn` runs must be idempotent (the opening's steps are).
+template <typename Fn>
+void RetryWhileBusy(Fn&& fn) {
+    const auto deadline = std::chrono::steady_clock::now() + std::chrono::milliseconds(kBusyTimeoutMs);
+    for (int attempt = 0;; ++attempt) {
+        try {
+            fn();
+            return;
+        } catch (const SQLite::Exception& e) {
+            if (e.getErrorCode() != SQLITE_BUSY || std::chrono::steady_clock::now() >= deadline) throw;
+        }
+        std::this_thread::sleep_for(std::chrono::milliseconds(1 << std::min(attempt, 5)));
+    }
+}
+
 }  // namespace
 
 struct SqliteStore::Impl {
@@ -58,22 +84,28 @@ SqliteStore::SqliteStore(const std::string& database_file, const std::string& da
     try {
         impl_ = std::make_unique<Impl>(database_file);
         auto& db = impl_->db;
-        db.exec("PRAGMA busy_timeout=5000");  // first: another process may be opening it too
-        db.exec("PRAGMA journal_mode=WAL");
+        // First: another process may be opening it too.
+        db.exec("PRAGMA busy_timeout=" + std::to_string(kBusyTimeoutMs));
+        RetryWhileBusy([&] { db.exec("PRAGMA journal_mode=WAL"); });
         // FULL: the WAL is fsynced at every commit, so an acknowledged upload or job survives a
         // power failure too (NORMAL would lose the commits since the last checkpoint; ~1 ms per
         // commit here, docs/durability.md).
         db.exec("PRAGMA synchronous=FULL");
         // Migrations: each one with its record in one transaction, so a crash or a second
-        // process opening at the same time never applies one twice.
-        db.exec(kSchemaMigrationsTable);
-        for (const Migration& m : Migrations()) {
+        // process opening at the same time never applies one twice. The table of them is
+        // created in a write transaction taken at once (IMMEDIATE waits for the busy timeout).
+        RetryWhileBusy([&] {
+            SQLite::Transaction tx(db, SQLite::TransactionBehavior::IMMEDIATE);
+            db.exec(kSchemaMigrationsTable);
+            tx.commit();
+        });
+        for (const Migration& m : Migrations()) RetryWhileBusy([&] {
             SQLite::Transaction tx(db, SQLite::TransactionBehavior::IMMEDIATE);  // rolled back unless committed
             SQLite::Statement newest(db, "SELECT COALESCE(MAX(version), 0) FROM schema_migrations");
             newest.executeStep();
             const std::int64_t applied = newest.getColumn(0).getInt64();
             store_detail::CheckSchemaNotNewer(applied, "database " + database_file);
-            if (applied >= m.version) continue;
+            if (applied >= m.version) return;
             db.exec(m.sqlite);
             SQLite::Statement rec(
                 db, "INSERT INTO schema_migrations (version, name, applied_ms) VALUES (?, ?, ?)");
@@ -82,7 +114,7 @@ SqliteStore::SqliteStore(const std::string& database_file, const std::string& da
             rec.bind(3, static_cast<std::int64_t>(NowUnixMs()));
             rec.exec();
             tx.commit();
-        }
+        });
     } catch (const SQLite::Exception& e) {
         throw Error(ErrorCode::kInternal, "database " + database_file + ": " + e.what());
     }
