@@ -21,10 +21,14 @@ constexpr std::uint64_t kImageBytesPerPixel = 32;    ///< 8 float channels
 constexpr std::uint64_t kExrFloatBytesPerPixel = 8;  ///< the codec's line buffers; it reads our channels
 constexpr std::uint64_t kExrHalfBytesPerPixel = 16;  ///< the channels converted to half
 constexpr std::uint64_t kPngBytesPerPixel = 6;       ///< 8-bit RGB buffer + the PNG file
+/// Per point of a cloud without normals under normal-aware weights (the default): the estimate
+/// of its normals in the set-up (neighbour table, covariances, the orientation's tree), a peak
+/// before the image is allocated.
+constexpr std::uint64_t kRenderNormalEstimateBytesPerPoint = 264;
 /// PNG goes through the OpenImageIO plugin, whose ~260 libraries a first PNG loads.
 constexpr std::uint64_t kPngFixedBytes = 96ull << 20;
 // Fitted to peak RSS (bench/memory_estimates.py -> bench/results-memory.md): bunny 512^2 and
-// 2048^2, person_scan 256^2 and 1024^2, lucy 1024^2, dragon 4096^2 PNG, all within 0.9-1.25.
+// 2048^2, person_scan 256^2 and 1024^2, lucy 1024^2, dragon 4096^2 PNG.
 
 [[noreturn]] void Bad(const std::string& field, const std::string& what) { InvalidField("render." + field, what); }
 
@@ -271,8 +275,16 @@ public:
         if (job.format() == v1::RenderJob::EXR_HALF) encode_per_pixel = kExrHalfBytesPerPixel;
         if (job.format() == v1::RenderJob::PNG) encode_per_pixel = kPngBytesPerPixel;
         const CloudFacts& in = inputs[0];
+        // The set-up's normal estimate (a cloud without normals, normal-aware weights) ends before
+        // the image is allocated: the larger of the two counts.
+        const bool estimates_normals =
+            std::find(in.attributes.begin(), in.attributes.end(), "normals") == in.attributes.end() &&
+            (job.weights() == v1::RenderJob::NORMAL_AWARE ||
+             (job.weights() == v1::RenderJob::WEIGHTS_UNSPECIFIED && AaOptions{}.normal_sigma > 0));
+        const std::uint64_t image = pixels * (kImageBytesPerPixel + encode_per_pixel);
+        const std::uint64_t normals = estimates_normals ? kRenderNormalEstimateBytesPerPoint * in.points : 0;
         const std::uint64_t work = kRenderFixedBytes + (job.format() == v1::RenderJob::PNG ? kPngFixedBytes : 0) +
-                                   kRenderBytesPerPoint * in.points + pixels * (kImageBytesPerPixel + encode_per_pixel);
+                                   kRenderBytesPerPoint * in.points + std::max(image, normals);
         return CloudBytes(in) + std::max(in.file_bytes, work);
     }
 

@@ -14,6 +14,10 @@ namespace {
 
 /// Memory estimate constants (docs/memory.md).
 constexpr std::uint64_t kResampleBytesPerInput = 250;
+/// Per output point of the particle methods (particle, split): the particle, its padded
+/// neighbour list, grid cells and the final MLS fit; fitted to peak RSS (bench/results-memory.md).
+constexpr std::uint64_t kResampleBytesPerParticle = 320;
+/// Per output point of MLS smoothing (one projection per input point).
 constexpr std::uint64_t kResampleBytesPerOutput = 100;
 
 // ---- proto -> ResampleOptions ----------------------------------------------------------------
@@ -111,7 +115,8 @@ public:
     }
 
     /// The cloud; per input point its kd-tree and local frames (kResampleBytesPerInput); per
-    /// output point the particle, its neighbour list and grid cell (kResampleBytesPerOutput),
+    /// output point the particle, its neighbour list and grid cell (kResampleBytesPerParticle;
+    /// MLS smoothing: kResampleBytesPerOutput),
     /// the output cloud and its PLY bytes. The output count: `target`, or from `spacing` over
     /// the bounding box's area (PointsAtSpacing), or the input's (mls).
     std::uint64_t EstimateMemory(const v1::JobSpec& spec, std::span<const CloudFacts> inputs) const override {
@@ -122,8 +127,10 @@ public:
         else if (job.spacing() > 0) out = PointsAtSpacing(in.extent, job.spacing());
         if (job.keep_input()) out = std::max(out, in.points);
         const std::uint64_t out_bytes = PointBytes(in.attributes) + 12;  // normals always written
-        const std::uint64_t work =
-            kResampleBytesPerInput * in.points + out * (kResampleBytesPerOutput + 2 * out_bytes);
+        const std::uint64_t per_output = ToResampleOptions(job).method == ResampleMethod::kMls
+                                             ? kResampleBytesPerOutput
+                                             : kResampleBytesPerParticle;
+        const std::uint64_t work = kResampleBytesPerInput * in.points + out * (per_output + 2 * out_bytes);
         return CloudBytes(in) + std::max(in.file_bytes, work);
     }
 
