@@ -525,7 +525,8 @@ PointCloud ParsePly(std::string_view data, std::string_view file, const PlyReadO
                 claimed[ia] = claimed[ib] = claimed[ic] = true;
                 if (!store) return true;
                 dst.resize(n);
-                float* base = dst.data()->data();
+                if (n == 0) return true;  // no records, no sinks (and no element to point into)
+                float* base = dst.front().data();
                 sinks[ia] = {base + 0, nullptr, 3, 1.0f};
                 sinks[ib] = {base + 1, nullptr, 3, 1.0f};
                 sinks[ic] = {base + 2, nullptr, 3, 1.0f};
@@ -548,11 +549,13 @@ PointCloud ParsePly(std::string_view data, std::string_view file, const PlyReadO
                     cloud.color_has_alpha = ia >= 0;
                     cloud.colors.assign(n, {0.f, 0.f, 0.f, 1.f});
                     const float div = ct == ScalarType::kUInt8 ? 255.0f : 1.0f;
-                    float* base = cloud.colors.data()->data();
-                    sinks[ir] = {base + 0, nullptr, 4, div};
-                    sinks[ig] = {base + 1, nullptr, 4, div};
-                    sinks[ib] = {base + 2, nullptr, 4, div};
-                    if (ia >= 0) sinks[ia] = {base + 3, nullptr, 4, div};
+                    if (n > 0) {  // no records, no sinks (and no element to point into)
+                        float* base = cloud.colors.front().data();
+                        sinks[ir] = {base + 0, nullptr, 4, div};
+                        sinks[ig] = {base + 1, nullptr, 4, div};
+                        sinks[ib] = {base + 2, nullptr, 4, div};
+                        if (ia >= 0) sinks[ia] = {base + 3, nullptr, 4, div};
+                    }
                 }
             }
             if (const int irad = idx("radius"); irad >= 0) {
