@@ -29,8 +29,8 @@ if(SURFEL_SANITIZE)
 endif()
 
 # How much slower an instrumented build runs (ASan + UBSan about 2-3x, TSan 5-15x): ctest's
-# per-test limit scales by it (a test that bounds a time itself reads the compiler's
-# __SANITIZE_ADDRESS__ / __SANITIZE_THREAD__, e.g. ManagerTest.TimeoutGivesDeadlineExceeded).
+# per-test limit scales by it, and every test target gets it as the definition SURFEL_TEST_SLOWDOWN
+# for the bounds it sets itself (e.g. ManagerTest.TimeoutGivesDeadlineExceeded).
 set(SURFEL_TEST_SLOWDOWN 1)
 if(SURFEL_SANITIZE MATCHES "thread")
     set(SURFEL_TEST_SLOWDOWN 8)
@@ -66,7 +66,9 @@ function(surfel_add_test name)
     target_compile_options(${name} PRIVATE -Wno-dangling-else)  # EXPECT_* after a bare if
     target_compile_definitions(${name} PRIVATE
         SURFEL_SHARED_DATA_DIR="${PROJECT_SOURCE_DIR}/../shared/data"
-        SURFEL_BIN_DIR="${CMAKE_RUNTIME_OUTPUT_DIRECTORY}")
+        SURFEL_BIN_DIR="${CMAKE_RUNTIME_OUTPUT_DIRECTORY}"
+        # A test that bounds a time itself scales the bound by this (1 in a plain build).
+        SURFEL_TEST_SLOWDOWN=${SURFEL_TEST_SLOWDOWN})
     set_target_properties(${name} PROPERTIES RUNTIME_OUTPUT_DIRECTORY ${CMAKE_BINARY_DIR}/tests)
     # The image plugin lives in build/bin/, not beside the test binaries (build/tests/). The
     # binary's name is each test's label: `ctest -L '^test_worker$'` runs one module's tests (the

@@ -307,8 +307,11 @@ TEST_F(ScaleOutTest, LargeObjectBlobsRunAJobEndToEndAndCatchAFlippedByte) {
         << failed.status_message;
 }
 
-// kill -9 of the worker running a job: another worker finishes it within the lease + 5 s.
-TEST_F(ScaleOutTest, KilledWorkerItsJobFinishesOnAnotherWithinLeasePlus5s) {
+// kill -9 of the worker running a job: another worker takes it over within the lease + 5 s and
+// finishes it. The bound is on the take-over (the lease's promise), not on the re-run, whose length
+// is the render's and grows with whatever else the machine runs (it failed 3 of 10 runs under three
+// busy loops when it bounded the finish).
+TEST_F(ScaleOutTest, KilledWorkerItsJobIsTakenOverWithinLeasePlus5sAndFinishes) {
     StartCluster();
     ServiceClient a(servers_[0]->target());
     const std::string cloud = a.UploadFile(Path("torus.ply")).id();
@@ -319,13 +322,20 @@ TEST_F(ScaleOutTest, KilledWorkerItsJobFinishesOnAnotherWithinLeasePlus5s) {
     const int victim = owner[1] - '0';
     const auto killed = Clock::now();
     EXPECT_EQ(workers_[victim]->Kill(SIGKILL), 128 + SIGKILL);
+    // Taken over: another owner holds the lease (or has already finished and released it).
+    // (Polled every 25 ms: each poll is a new PostgreSQL connection.)
+    while (LeaseOwner(id) == owner && MsSince(killed) < (kLeaseS + 30) * 1000)
+        std::this_thread::sleep_for(std::chrono::milliseconds(25));
+    const double taken_ms = MsSince(killed);
+    ASSERT_NE(LeaseOwner(id), owner) << "the dead worker still holds the lease";
     auto o = a.Watch(id, true, false);
     const double ms = MsSince(killed);
     ASSERT_EQ(o.state, v1::SUCCEEDED) << o.status_message;
     EXPECT_EQ(o.bytes.size(), o.result.size_bytes());
-    std::printf("kill -9 of %s -> job SUCCEEDED on another worker after %.0f ms (lease %.0f s)\n",
-                owner.c_str(), ms, kLeaseS);
-    EXPECT_LT(ms, (kLeaseS + 5) * 1000);
+    std::printf("kill -9 of %s -> taken over after %.0f ms, SUCCEEDED on another worker after %.0f "
+                "ms (lease %.0f s)\n",
+                owner.c_str(), taken_ms, ms, kLeaseS);
+    EXPECT_LT(taken_ms, (kLeaseS + 5) * 1000);
     EXPECT_EQ(Cluster::Exec(url_, "SELECT attempts FROM jobs WHERE id = '" + id + "'"), "1");
     StopWorkers();  // the finisher's line may follow the end the watcher saw
     int finishers = 0;
