@@ -10,6 +10,7 @@
 #include <algorithm>
 #include <atomic>
 #include <exception>
+#include <limits>
 #include <memory>
 #include <cmath>
 #include <sstream>
@@ -706,6 +707,16 @@ struct NewSample {
     float radius;
 };
 
+// The nearest of `tree`'s points within `radius` of q (ties by the smaller index, as
+// KdTree::Nearest); index UINT32_MAX when there is none. `scratch` is reused.
+Neighbor NearestWithin(const KdTree& tree, const Vec3f& q, float radius, std::vector<Neighbor>& scratch) {
+    tree.Radius(q, radius, &scratch);
+    Neighbor best{UINT32_MAX, std::numeric_limits<float>::infinity()};
+    for (const Neighbor& c : scratch)
+        if (c.dist2 < best.dist2 || (c.dist2 == best.dist2 && c.index < best.index)) best = c;
+    return best;
+}
+
 std::vector<NewSample> Upsample(const Side& self, const Side& other, bool of_a, BooleanOp op,
                                 std::vector<std::uint8_t>& keep,
                                 const std::vector<CurveSample>& curve,
@@ -724,13 +735,19 @@ std::vector<NewSample> Upsample(const Side& self, const Side& other, bool of_a, 
     std::vector<std::uint8_t> split(n, 0);
     tbb::parallel_for(
         tbb::blocked_range<std::size_t>(0, n, 256), [&](const tbb::blocked_range<std::size_t>& r) {
+            std::vector<Neighbor> near;
             for (std::size_t i = r.begin(); i != r.end(); ++i) {
                 if (!keep[i]) continue;
                 const std::uint32_t ii = static_cast<std::uint32_t>(i);
                 const Vec3f x = self.Position(ii);
                 const float eta = self.Spacing(ii);
-                const Neighbor c = ctree.Nearest(x);
-                if (c.dist2 > 4.0f * eta * eta ||
+                // The nearest curve sample within 2 eta (ties by index, as Nearest): the same
+                // answer as an unbounded Nearest wherever it passes the test below, and cheap for
+                // the many samples far from the curve (an unbounded search from there visits
+                // most of the curve's tree: 5,400 instructions a query, 17 % of sphere - box).
+                // (FLANN keeps a point only when strictly inside the radius: a hair more.)
+                const Neighbor c = NearestWithin(ctree, x, 2.0001f * eta, near);
+                if (c.index == UINT32_MAX || c.dist2 > 4.0f * eta * eta ||
                     !(eta > options.upsample_ratio * eta_other[c.index]))
                     continue;
                 const int m = std::clamp(static_cast<int>(std::lround(eta / eta_other[c.index])), 2,
