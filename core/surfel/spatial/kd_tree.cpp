@@ -5,12 +5,15 @@
 #include <tbb/parallel_for.h>
 
 #include <algorithm>
+#include <cmath>
 #include <flann/algorithms/kdtree_single_index.h>
 #include <flann/flann.hpp>
 #include <limits>
 #include <sstream>
 
 #include "surfel/base/error.h"
+#include "surfel/spatial/neighbor_radii.h"
+#include "surfel/spatial/uniform_grid.h"
 
 #if defined(__SANITIZE_THREAD__) || defined(SURFEL_TSAN_BUILD)
 // (SURFEL_TSAN_BUILD: the TSan build, which compiles this module itself without instrumentation.)
@@ -44,7 +47,10 @@ public:
     KnnCollector(std::vector<Neighbor>* out, std::size_t k) : out_(out), k_(k) { out_->resize(k); }
     ~KnnCollector() override { out_->resize(count_); }
     bool full() const override { return count_ == k_; }
-    float worstDist() const override { return worst_; }
+    // FLANN offers a leaf point only when strictly nearer than this: the next float above the
+    // k-th lets a point tied with it through, so that addPoint ranks ties by index whatever
+    // order the tree visits them in (the grid's KnnAll gives the same rows).
+    float worstDist() const override { return count_ == k_ ? std::nextafter(worst_, std::numeric_limits<float>::infinity()) : worst_; }
     void addPoint(float dist, std::size_t index) override {
         const auto idx = static_cast<std::uint32_t>(index);
         Neighbor* buf = out_->data();
@@ -171,6 +177,24 @@ Neighbor KdTree::Nearest(const Vec3f& q) const {
 }
 
 namespace {
+// Row i of `table`: the table.k nearest points of q, without point i itself when `exclude_self`
+// (q is then point i): the k smallest by (distance, index) among the others.
+void FillRow(const KdTree& tree, const Vec3f& q, std::size_t i, bool exclude_self, std::vector<Neighbor>& buf,
+             KnnTable& table) {
+    const int k = table.k;
+    tree.Knn(q, exclude_self ? k + 1 : k, &buf);
+    if (exclude_self) {
+        auto self = std::find_if(buf.begin(), buf.end(), [i](const Neighbor& nb) { return nb.index == i; });
+        if (self != buf.end()) buf.erase(self);
+        else if (static_cast<int>(buf.size()) > k) buf.pop_back();
+    }
+    const std::size_t m = std::min<std::size_t>(buf.size(), k);
+    for (std::size_t j = 0; j < m; ++j) {
+        table.indices[i * k + j] = buf[j].index;
+        table.dist2[i * k + j] = buf[j].dist2;
+    }
+}
+
 KnnTable RunBatch(const KdTree& tree, std::size_t n, int k, bool exclude_self, const Vec3f* queries,
                   const ProgressFn& progress) {
     SURFEL_CHECK(k > 0, "k = " << k);
@@ -179,22 +203,9 @@ KnnTable RunBatch(const KdTree& tree, std::size_t n, int k, bool exclude_self, c
     table.indices.assign(n * k, UINT32_MAX);
     table.dist2.assign(n * k, std::numeric_limits<float>::infinity());
     ProgressTracker tracker(progress, static_cast<double>(n), "neighbour search");
-    const int kq = exclude_self ? k + 1 : k;
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 1024), [&](const tbb::blocked_range<std::size_t>& r) {
         std::vector<Neighbor> buf;
-        for (std::size_t i = r.begin(); i != r.end(); ++i) {
-            tree.Knn(queries[i], kq, &buf);
-            if (exclude_self) {
-                auto self = std::find_if(buf.begin(), buf.end(), [i](const Neighbor& nb) { return nb.index == i; });
-                if (self != buf.end()) buf.erase(self);
-                else if (static_cast<int>(buf.size()) > k) buf.pop_back();
-            }
-            const std::size_t m = std::min<std::size_t>(buf.size(), k);
-            for (std::size_t j = 0; j < m; ++j) {
-                table.indices[i * k + j] = buf[j].index;
-                table.dist2[i * k + j] = buf[j].dist2;
-            }
-        }
+        for (std::size_t i = r.begin(); i != r.end(); ++i) FillRow(tree, queries[i], i, exclude_self, buf, table);
         tracker.Advance(static_cast<double>(r.size()));
     });
     return table;
@@ -202,7 +213,29 @@ KnnTable RunBatch(const KdTree& tree, std::size_t n, int k, bool exclude_self, c
 }  // namespace
 
 KnnTable KdTree::KnnAll(int k, const ProgressFn& progress) const {
-    return RunBatch(*this, size(), k, true, impl_->points.data(), progress);
+    SURFEL_CHECK(k > 0, "k = " << k);
+    const std::size_t n = size();
+    const auto grid = NeighborGrid(impl_->points, k, 8);
+    if (!grid) return RunBatch(*this, n, k, true, impl_->points.data(), progress);
+    // Most rows from the grid's blocks (the same table: same ranking, same float distances), the
+    // rest (near a sparse region's edge) from the tree, as RunBatch answers them.
+    KnnTable table;
+    table.k = k;
+    table.indices.assign(n * k, UINT32_MAX);
+    table.dist2.assign(n * k, std::numeric_limits<float>::infinity());
+    ProgressTracker tracker(progress, static_cast<double>(n), "neighbour search");
+    std::vector<std::uint8_t> answered(n, 0);
+    grid->KnnInBlock(k, table.indices.data(), table.dist2.data(), answered.data(),
+                     [&](std::size_t points) { tracker.Advance(0.8 * static_cast<double>(points)); });
+    std::vector<std::uint32_t> rest;
+    for (std::size_t i = 0; i < n; ++i)
+        if (!answered[i]) rest.push_back(static_cast<std::uint32_t>(i));
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, rest.size(), 256), [&](const tbb::blocked_range<std::size_t>& r) {
+        std::vector<Neighbor> buf;
+        for (std::size_t t = r.begin(); t != r.end(); ++t) FillRow(*this, impl_->points[rest[t]], rest[t], true, buf, table);
+        tracker.Advance(0.2 * static_cast<double>(r.size()) * static_cast<double>(n) / static_cast<double>(rest.size()));
+    });
+    return table;
 }
 
 KnnTable KdTree::KnnBatch(std::span<const Vec3f> queries, int k, const ProgressFn& progress) const {

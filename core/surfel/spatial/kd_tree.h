@@ -53,7 +53,8 @@ public:
     /// The indexed points (a copy of the constructor's input).
     std::span<const Vec3f> points() const;
 
-    /// The k nearest points of q, nearest first, into `out` (cleared first; fewer if size() < k).
+    /// The k nearest points of q, nearest first (ties by index), into `out` (cleared first; fewer
+    /// if size() < k).
     void Knn(const Vec3f& q, int k, std::vector<Neighbor>* out) const;
 
     /// All points within distance `radius` of q (inclusive), in no particular order, into `out`
@@ -63,7 +64,12 @@ public:
     /// The single nearest point of q; UINT32_MAX for an empty tree.
     Neighbor Nearest(const Vec3f& q) const;
 
-    /// k nearest neighbours of every indexed point, excluding the point itself; parallel.
+    /// k nearest neighbours of every indexed point, excluding the point itself: the k smallest
+    /// (squared distance, index) pairs among the other points, so a tie at the k-th goes to the
+    /// smaller index, as in Knn. Parallel. Rows come from a uniform grid where one suits the
+    /// cloud (NeighborGrid: the 3 x 3 x 3 cells around a point, exact when its k-th neighbour lies
+    /// inside them) and from the tree otherwise; both give the same bits. On the 362k merged scans
+    /// (k = 16) about 1.13 G instructions against the tree's 1.48 G.
     KnnTable KnnAll(int k, const ProgressFn& progress = {}) const;
 
     /// k nearest neighbours of each query; parallel.

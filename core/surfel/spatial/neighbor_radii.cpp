@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <memory>
 
 #include "surfel/base/error.h"
 #include "surfel/spatial/kd_tree.h"
@@ -66,6 +67,43 @@ std::vector<float> ViaTree(std::span<const Vec3f> points, int k, const KdTree* t
 
 }  // namespace
 
+std::unique_ptr<UniformGrid> NeighborGrid(std::span<const Vec3f> points, int k, std::uint64_t cells_per_point) {
+    const std::size_t n = points.size();
+    if (n < 2 || k < 1 || k > kMaxK) return nullptr;
+    BoundingBox box;
+    for (const Vec3f& p : points) {
+        if (!p.allFinite()) return nullptr;
+        box.Extend(p);
+    }
+    const float diag = box.Diagonal();
+    if (!(diag > 0.0f)) return nullptr;
+    // The smallest cell >= c (in steps of 1.25x) that the dense layout fits, or 0.
+    auto dense_cell = [&](float c) {
+        c = std::max(c, diag * 1e-6f);
+        for (int t = 0; t < 12; ++t, c *= 1.25f)
+            if (UniformGrid::FitsDense(box, n, c, cells_per_point)) return c;
+        return 0.0f;
+    };
+    // A first cell from the box, as if the points sampled a surface of area ~ diag^2: spacing
+    // diag / sqrt(n), and the k-th neighbour about sqrt(k / pi) spacings away.
+    float cell = dense_cell(kCellPerMedian * diag * std::sqrt(static_cast<float>(k) / (3.14159265f * static_cast<float>(n))));
+    if (cell == 0.0f) return nullptr;
+    auto grid = std::make_unique<UniformGrid>(points, cell);
+    const float reach = 2.0f * diag;
+    // Refine the cell from the median k-th distance of an even sample (volumes, lines and very
+    // uneven clouds are far from the surface guess) when it is off by more than 1.5x, as far as
+    // the dense layout allows.
+    const std::size_t samples = std::min<std::size_t>(n, 256), stride = n / samples;
+    std::vector<float> d(samples);
+    for (std::size_t s = 0; s < samples; ++s)
+        d[s] = KthDist2(*grid, points, static_cast<std::uint32_t>(s * stride), static_cast<int>(std::min<std::size_t>(k, n - 1)),
+                        grid->cell(), reach);
+    std::nth_element(d.begin(), d.begin() + samples / 2, d.end());
+    const float want = dense_cell(kCellPerMedian * std::sqrt(d[samples / 2]));
+    if (want > 0.0f && (want > 1.5f * cell || want < cell / 1.5f)) grid = std::make_unique<UniformGrid>(points, want);
+    return grid->dense() ? std::move(grid) : nullptr;
+}
+
 std::vector<float> KthNeighborDistances(std::span<const Vec3f> points, int k, const KdTree* tree) {
     SURFEL_CHECK(k > 0, "k must be positive, got " << k);
     const std::size_t n = points.size();
@@ -78,36 +116,9 @@ std::vector<float> KthNeighborDistances(std::span<const Vec3f> points, int k, co
     }
     const float diag = box.Diagonal();
     if (!(diag > 0.0f)) return std::vector<float>(n, 0.0f);  // all points coincide
-    if (k > kMaxK) return ViaTree(points, k, tree);
-
-    // The smallest cell >= c (in steps of 1.25x) that the dense layout fits, or 0.
-    auto dense_cell = [&](float c) {
-        c = std::max(c, diag * 1e-6f);
-        for (int t = 0; t < 12; ++t, c *= 1.25f)
-            if (UniformGrid::FitsDense(box, n, c, kCellsPerPoint)) return c;
-        return 0.0f;
-    };
-    // A first cell from the box, as if the points sampled a surface of area ~ diag^2: spacing
-    // diag / sqrt(n), and the k-th neighbour about sqrt(k / pi) spacings away.
-    float cell = dense_cell(kCellPerMedian * diag * std::sqrt(static_cast<float>(k) / (3.14159265f * static_cast<float>(n))));
-    if (cell == 0.0f) return ViaTree(points, k, tree);
-    auto grid = std::make_unique<UniformGrid>(points, cell);
+    const auto grid = NeighborGrid(points, k, kCellsPerPoint);
+    if (!grid) return ViaTree(points, k, tree);
     const float reach = 2.0f * diag;
-    // Refine the cell from the median k-th distance of an even sample (volumes, lines and very
-    // uneven clouds are far from the surface guess) when it is off by more than 1.5x, as far as
-    // the dense layout allows.
-    {
-        const std::size_t samples = std::min<std::size_t>(n, 256), stride = n / samples;
-        std::vector<float> d(samples);
-        for (std::size_t s = 0; s < samples; ++s)
-            d[s] = KthDist2(*grid, points, static_cast<std::uint32_t>(s * stride), k, grid->cell(), reach);
-        std::nth_element(d.begin(), d.begin() + samples / 2, d.end());
-        const float want = dense_cell(kCellPerMedian * std::sqrt(d[samples / 2]));
-        if (want > 0.0f && (want > 1.5f * cell || want < cell / 1.5f)) {
-            cell = want;
-            grid = std::make_unique<UniformGrid>(points, cell);
-        }
-    }
     // Most points find their k-th neighbour in the block of cells around them; the rest search
     // outwards from there.
     std::vector<float> r = grid->KthNeighborDist2InBlock(k);

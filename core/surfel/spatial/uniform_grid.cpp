@@ -205,4 +205,105 @@ std::vector<float> UniformGrid::KthNeighborDist2InBlock(int k) const {
     return out;
 }
 
+void UniformGrid::KnnInBlock(int k, std::uint32_t* indices, float* dist2, std::uint8_t* answered,
+                             const std::function<void(std::size_t)>& done) const {
+    SURFEL_CHECK(k >= 1 && k <= 64, "k must be 1..64, got " << k);
+    if (!dense_) return;
+    const int nx = dims_[0], ny = dims_[1], nz = dims_[2];
+    struct Ranked {
+        float d2;
+        std::uint32_t index;
+    };
+    tbb::parallel_for(tbb::blocked_range<int>(0, nx), [&](const tbb::blocked_range<int>& xs) {
+        std::vector<float> cx, cy, cz, d2;
+        std::vector<std::uint32_t> cid;
+        std::array<Ranked, 64> best;
+        // As in KthNeighborDist2InBlock: the last point ranked in this task and its k-th
+        // distance bound the candidates of the next by the triangle inequality.
+        Vec3f prev = Vec3f::Zero();
+        float prev_rho = -1.0f;
+        for (int x = xs.begin(); x != xs.end(); ++x) {
+            std::size_t slab_points = 0;
+            for (int y = 0; y < ny; ++y)
+                for (int z = 0; z < nz; ++z) {
+                    const std::size_t cell = (static_cast<std::size_t>(x) * ny + y) * nz + z;
+                    const std::uint32_t first = starts_[cell], last = starts_[cell + 1];
+                    if (first == last) continue;
+                    slab_points += last - first;
+                    cx.clear(), cy.clear(), cz.clear(), cid.clear();
+                    std::size_t self = 0;
+                    for (int bx = std::max(0, x - 1); bx <= std::min(nx - 1, x + 1); ++bx)
+                        for (int by = std::max(0, y - 1); by <= std::min(ny - 1, y + 1); ++by) {
+                            const std::size_t column = (static_cast<std::size_t>(bx) * ny + by) * nz;
+                            const std::uint32_t b = starts_[column + std::max(0, z - 1)];
+                            const std::uint32_t e = starts_[column + std::min(nz - 1, z + 1) + 1];
+                            if (bx == x && by == y) self = cx.size() + (first - b);
+                            for (std::uint32_t j = b; j < e; ++j) {
+                                cx.push_back(sorted_[j].x()), cy.push_back(sorted_[j].y()), cz.push_back(sorted_[j].z());
+                                cid.push_back(order_[j]);
+                            }
+                        }
+                    const std::size_t m = cx.size();
+                    if (m <= static_cast<std::size_t>(k)) continue;  // fewer than k others
+                    const Vec3f lo = origin_ + cell_ * Vec3f(float(x - 1), float(y - 1), float(z - 1));
+                    const Vec3f hi = origin_ + cell_ * Vec3f(float(x + 2), float(y + 2), float(z + 2));
+                    const int at[3] = {x, y, z};
+                    if (d2.size() < m) d2.resize(m);
+                    const float *X = cx.data(), *Y = cy.data(), *Z = cz.data();
+                    float* D = d2.data();
+                    for (std::uint32_t i = first; i < last; ++i) {
+                        const Vec3f p = sorted_[i];
+                        const float px = p.x(), py = p.y(), pz = p.z();
+#pragma omp simd
+                        for (std::size_t j = 0; j < m; ++j) {
+                            const float dx = X[j] - px, dy = Y[j] - py, dz = Z[j] - pz;
+                            D[j] = dx * dx + dy * dy + dz * dz;  // FLANN's order: see the header
+                        }
+                        D[self + (i - first)] = std::numeric_limits<float>::infinity();  // not its own
+                        // The k smallest by (distance, index), in one pass: a candidate beyond
+                        // the threshold (the triangle-inequality bound, then the k-th so far)
+                        // costs a compare; the rest go into a sorted k-array.
+                        float threshold = std::numeric_limits<float>::infinity();
+                        if (prev_rho >= 0.0f) {
+                            const float bound = prev_rho + (p - prev).norm();
+                            threshold = bound * bound * 1.0001f;  // a hair wider for rounding
+                        }
+                        int count = 0;
+                        for (std::size_t j = 0; j < m; ++j) {
+                            const float v = D[j];
+                            if (v > threshold) continue;
+                            const std::uint32_t id = cid[j];
+                            if (count == k) {
+                                if (v == best[k - 1].d2 && id > best[k - 1].index) continue;
+                                --count;
+                            }
+                            int pos = count++;
+                            while (pos > 0 && (best[pos - 1].d2 > v || (best[pos - 1].d2 == v && best[pos - 1].index > id))) {
+                                best[pos] = best[pos - 1];
+                                --pos;
+                            }
+                            best[pos] = {v, id};
+                            if (count == k) threshold = best[k - 1].d2;
+                        }
+                        const float kth = best[k - 1].d2;
+                        if (count < k || std::isinf(kth)) continue;
+                        prev = p;
+                        prev_rho = std::sqrt(kth);
+                        float reach = std::numeric_limits<float>::infinity();
+                        for (int a = 0; a < 3; ++a) {
+                            if (at[a] > 0) reach = std::min(reach, p[a] - lo[a]);
+                            if (at[a] < dims_[a] - 1) reach = std::min(reach, hi[a] - p[a]);
+                        }
+                        reach -= 1e-4f * cell_;
+                        if (!(reach > 0.0f && kth <= reach * reach)) continue;
+                        const std::size_t row = static_cast<std::size_t>(order_[i]) * k;
+                        for (int r = 0; r < k; ++r) indices[row + r] = best[r].index, dist2[row + r] = best[r].d2;
+                        answered[order_[i]] = 1;
+                    }
+                }
+            if (done) done(slab_points);
+        }
+    });
+}
+
 }  // namespace surfel

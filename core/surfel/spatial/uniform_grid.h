@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <functional>
 #include <span>
 #include <vector>
 
@@ -98,6 +99,19 @@ public:
     /// points of a cell share the block's candidates, gathered once from 9 contiguous z-runs.
     /// Indexed like the points the grid was built from; parallel. Empty for the sparse layout.
     std::vector<float> KthNeighborDist2InBlock(int k) const;
+
+    /// Dense layout only: for every point p_i, its k nearest other points (k <= 64) ranked by
+    /// (squared distance, index), where all k lie within the 3 x 3 x 3 block of cells around
+    /// p_i's cell, so that no point outside the block is as near as the k-th (then the row is
+    /// exact). Squared distances are dx * dx + dy * dy + dz * dz in float, in that order, as
+    /// FLANN's L2_Simple computes them, so that the values equal KdTree's. Row i (indexed like
+    /// the points the grid was built from) is written to indices[i * k ...] and dist2[i * k ...]
+    /// and `answered[i]` set to 1; the other rows are left alone for the caller to search
+    /// another way. `done(points)` is called from the worker threads as cells are finished (for
+    /// progress and cancellation; it may throw). Parallel; no row depends on the thread count.
+    /// Does nothing for the sparse layout.
+    void KnnInBlock(int k, std::uint32_t* indices, float* dist2, std::uint8_t* answered,
+                    const std::function<void(std::size_t)>& done) const;
 
     /// Whether a grid of `n` points in `box` with this cell gets the dense layout (at most
     /// `cells_per_point` cells a point, 4 bytes each; the constructor allows 32).

@@ -80,6 +80,93 @@ TEST_F(KdTreeTest, KnnAllExcludesSelfAndIsDeterministic) {
     }
 }
 
+// KnnAll answers most rows from a uniform grid: each row must be the tree's own answer to the
+// bit (the k smallest (distance, index) pairs among the other points; ties at the k-th ranked
+// by index), on clouds full of ties (a lattice, duplicates), with sparse outliers (rows the grid
+// leaves to the tree) and on a noisy torus.
+KnnTable TreeRows(const KdTree& tree, int k) {
+    const auto pts = tree.points();
+    const KnnTable all = tree.KnnBatch(pts, k + 1);  // the tree's search, self included
+    KnnTable t;
+    t.k = k;
+    for (std::size_t i = 0; i < pts.size(); ++i) {
+        int taken = 0;
+        for (int j = 0; j < k + 1 && taken < k; ++j) {
+            if (all.Row(i)[j] == i) continue;
+            t.indices.push_back(all.Row(i)[j]);
+            t.dist2.push_back(all.Dist2(i)[j]);
+            ++taken;
+        }
+        for (; taken < k; ++taken) t.indices.push_back(UINT32_MAX), t.dist2.push_back(std::numeric_limits<float>::infinity());
+    }
+    return t;
+}
+
+void ExpectKnnAllIsTheTreesAnswer(const std::vector<Vec3f>& pts, int k) {
+    const KdTree tree(pts);
+    const KnnTable got = tree.KnnAll(k), want = TreeRows(tree, k);
+    ASSERT_EQ(got.indices.size(), want.indices.size());
+    for (std::size_t i = 0; i < got.size(); ++i) {
+        for (int j = 0; j < k; ++j) {
+            ASSERT_EQ(got.Row(i)[j], want.Row(i)[j]) << "row " << i << " rank " << j;
+            ASSERT_EQ(got.Dist2(i)[j], want.Dist2(i)[j]) << "row " << i << " rank " << j;
+        }
+        // Ranked by (distance, index); ties at the last rank resolved by index, not by the
+        // order a search happened to visit them.
+        for (int j = 1; j < k; ++j)
+            EXPECT_TRUE(got.Dist2(i)[j - 1] < got.Dist2(i)[j] ||
+                        (got.Dist2(i)[j - 1] == got.Dist2(i)[j] && got.Row(i)[j - 1] < got.Row(i)[j]))
+                << "row " << i;
+        if (i % 37 != 0) continue;
+        // Brute force on every 37th row, with FLANN's float sum ((dx^2 + dy^2) + dz^2; Eigen's
+        // squaredNorm differs in the last bits): as many others nearer than the k-th as the row
+        // holds, and no tie of the k-th with a smaller index left out.
+        const float kth = got.Dist2(i)[k - 1];
+        int nearer = 0, tied_before = 0;
+        std::uint32_t last_kept = got.Row(i)[k - 1];
+        for (std::size_t j = 0; j < pts.size(); ++j) {
+            if (j == i) continue;
+            const float dx = pts[i].x() - pts[j].x(), dy = pts[i].y() - pts[j].y(), dz = pts[i].z() - pts[j].z();
+            const float d2 = dx * dx + dy * dy + dz * dz;
+            nearer += d2 < kth;
+            tied_before += d2 == kth && j <= last_kept;
+        }
+        int tied_in_row = 0, nearer_in_row = 0;
+        for (int j = 0; j < k; ++j) (got.Dist2(i)[j] == kth ? tied_in_row : nearer_in_row) += 1;
+        EXPECT_EQ(nearer, nearer_in_row) << "row " << i;
+        EXPECT_EQ(tied_before, tied_in_row) << "row " << i << ": ties at the k-th not the smallest indices";
+    }
+}
+
+TEST(KdTree, KnnAllRowsAreTheTreesOnATorus) {
+    ShapeOptions o;
+    o.points = 20000;
+    o.noise = 0.01;
+    const PointCloud c = SampleShape(Shape::kTorus, o);
+    ExpectKnnAllIsTheTreesAnswer(c.positions, 16);
+    ExpectKnnAllIsTheTreesAnswer(c.positions, 6);
+}
+
+TEST(KdTree, KnnAllRowsAreTheTreesOnALatticeFullOfTies) {
+    std::vector<Vec3f> pts;
+    for (int x = 0; x < 60; ++x)
+        for (int y = 0; y < 50; ++y) pts.emplace_back(0.01f * x, 0.01f * y, 0.0f);
+    ExpectKnnAllIsTheTreesAnswer(pts, 8);   // 4 at one spacing, 4 at the diagonal
+    ExpectKnnAllIsTheTreesAnswer(pts, 6);   // the 5th and 6th of 4 tied diagonals
+    ExpectKnnAllIsTheTreesAnswer(pts, 16);
+}
+
+TEST(KdTree, KnnAllRowsAreTheTreesWithDuplicatesAndOutliers) {
+    ShapeOptions o;
+    o.points = 5000;
+    PointCloud c = SampleShape(Shape::kSphere, o);
+    std::vector<Vec3f> pts;
+    for (const Vec3f& p : c.positions) pts.insert(pts.end(), {p, p, p});  // each point three times
+    for (int i = 0; i < 30; ++i) pts.emplace_back(5.0f + 0.7f * i, 3.0f, -2.0f);  // sparse: the tree's rows
+    ExpectKnnAllIsTheTreesAnswer(pts, 2);   // a point's own duplicates
+    ExpectKnnAllIsTheTreesAnswer(pts, 10);
+}
+
 // The same neighbours whatever the thread count (KnnAll's queries run in parallel).
 TEST(KdTree, SameNeighboursWhateverTheThreadCount) {
     ShapeOptions o;
