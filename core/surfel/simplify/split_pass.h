@@ -8,7 +8,8 @@
 // Both builds give the same bits: every sum adds the same terms in the same order (one
 // accumulator per sum, the AVX2 build holds three of them in the lanes of one register), the
 // products and differences are elementwise, no FMA and no contraction. Setting the environment
-// variable SURFEL_FIT_KERNELS=baseline picks the baseline build on any CPU.
+// variable SURFEL_FIT_KERNELS=baseline picks the baseline build on any CPU (the one rule for every
+// twice-compiled loop: PickKernelBuild(), base/kernel_build.h).
 
 #include <cstddef>
 #include <cstdint>
