@@ -314,7 +314,13 @@ Clustering HierarchicalClustering(std::span<const Vec3f> points, const SimplifyO
             // Uniform: phase 1 in parallel up to a size the queue surely passes (leaves of at
             // most 2.5 n / target points, which makes at most about target / 1.7 clusters).
             const std::size_t threshold = std::max<std::size_t>(16, 5 * std::size_t(n) / (2 * options.target));
-            tbb::enumerable_thread_specific<std::vector<Node>> local;
+            // Room for every leaf in each thread's list (address space only: the pages are touched
+            // as it fills), so no list is copied as it grows.
+            tbb::enumerable_thread_specific<std::vector<Node>> local([&] {
+                std::vector<Node> v;
+                v.reserve(options.target + 1);
+                return v;
+            });
             SplitAbove(items, scratch, root, threshold, local);
             for (auto& l : local) nodes.insert(nodes.end(), l.begin(), l.end());
             if (nodes.size() > options.target) {  // an unbalanced cloud overshot: start over
@@ -345,10 +351,7 @@ Clustering HierarchicalClustering(std::span<const Vec3f> points, const SimplifyO
             const std::uint32_t top = heap.back().node;
             heap.pop_back();
             Node a, b;
-            if (!SplitNode(items, scratch, nodes[top], options.adaptive, a, b)) {
-                leaves.push_back(nodes[top]);
-                continue;
-            }
+            if (!SplitNode(items, scratch, nodes[top], options.adaptive, a, b)) continue;  // stays a leaf
             nodes[top] = a;
             nodes.push_back(b);
             heap.push_back({a.priority, a.begin, top});
@@ -361,7 +364,9 @@ Clustering HierarchicalClustering(std::span<const Vec3f> points, const SimplifyO
                 done_since_check = 0;
             }
         }
-        for (const Entry& e : heap) leaves.push_back(nodes[e.node]);
+        // Every node is a leaf now (split ones were replaced by their first child): the queued
+        // ones and those that could not be split. No copy: LabelsFromNodes orders them itself.
+        leaves = std::move(nodes);
     } else {
         // Recursive variant: split while larger than n_max, more varied than sigma_max
         // (adaptive) or farther from the cluster plane than the error bound.

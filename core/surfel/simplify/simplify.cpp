@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <cmath>
 #include <fstream>
+#include <limits>
 #include <string>
 
 #include "surfel/base/error.h"
@@ -70,33 +71,37 @@ void RepresentativesOnSurface(std::span<const Vec3f> points, const Clustering& c
                               std::span<const std::uint32_t> count, std::vector<Vec3f>& rep) {
     constexpr std::uint32_t kMinFit = 20;
     const std::size_t n = points.size(), m = clusters.count;
-    std::vector<detail::Moments> mom(m);
+    // State only for the clusters that are fitted (slot[c]; kNone for the others): at 10 % most
+    // clusters have fewer than kMinFit members, and m full sets would be megabytes of fresh pages.
+    constexpr std::uint32_t kNone = std::numeric_limits<std::uint32_t>::max();
+    std::vector<std::uint32_t> slot(m, kNone), fitted;
+    for (std::size_t c = 0; c < m; ++c)
+        if (count[c] >= kMinFit) slot[c] = static_cast<std::uint32_t>(fitted.size()), fitted.push_back(std::uint32_t(c));
+    if (fitted.empty()) return;
+    const std::size_t f = fitted.size();
+    std::vector<detail::Moments> mom(f);
     for (std::size_t i = 0; i < n; ++i)
-        if (count[clusters.label[i]] >= kMinFit) mom[clusters.label[i]].Add(points[i]);
-    std::vector<LocalFrame> frame(m);
+        if (const std::uint32_t s = slot[clusters.label[i]]; s != kNone) mom[s].Add(points[i]);
+    std::vector<LocalFrame> frame(f);
     std::vector<PolyFit> fit;
-    fit.reserve(m);
-    std::vector<double> thickness(m, 0.0);
-    for (std::size_t c = 0; c < m; ++c) {
-        double scale = 1.0;
-        if (count[c] >= kMinFit) {
-            const detail::Spread sp = detail::Analyze(mom[c]);
-            frame[c] = LocalFrame::FromNormal(mom[c].Centroid(), sp.v0);
-            scale = std::max(std::sqrt(sp.eigenvalues[2]), 1e-30);
-            thickness[c] = 3.0 * std::sqrt(sp.eigenvalues[0]);
-        }
-        fit.emplace_back(2, scale);
+    fit.reserve(f);
+    std::vector<double> thickness(f, 0.0);
+    for (std::size_t s = 0; s < f; ++s) {
+        const detail::Spread sp = detail::Analyze(mom[s]);
+        frame[s] = LocalFrame::FromNormal(mom[s].Centroid(), sp.v0);
+        thickness[s] = 3.0 * std::sqrt(sp.eigenvalues[0]);
+        fit.emplace_back(2, std::max(std::sqrt(sp.eigenvalues[2]), 1e-30));
     }
     for (std::size_t i = 0; i < n; ++i) {
-        const std::uint32_t c = clusters.label[i];
-        if (count[c] < kMinFit) continue;
-        const Vec3d l = frame[c].ToLocal(points[i].cast<double>());
-        fit[c].Add(l.x(), l.y(), l.z(), 1.0);
+        const std::uint32_t s = slot[clusters.label[i]];
+        if (s == kNone) continue;
+        const Vec3d l = frame[s].ToLocal(points[i].cast<double>());
+        fit[s].Add(l.x(), l.y(), l.z(), 1.0);
     }
-    for (std::size_t c = 0; c < m; ++c) {
+    for (std::size_t s = 0; s < f; ++s) {
         PolyCoeffs g;
-        if (count[c] < kMinFit || !fit[c].Solve(&g) || !(std::abs(g.c[0]) <= thickness[c])) continue;
-        rep[c] = frame[c].ToWorld(0.0, 0.0, g.c[0]).cast<float>();
+        if (!fit[s].Solve(&g) || !(std::abs(g.c[0]) <= thickness[s])) continue;
+        rep[fitted[s]] = frame[s].ToWorld(0.0, 0.0, g.c[0]).cast<float>();
     }
 }
 
@@ -106,7 +111,7 @@ PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> nor
     SURFEL_CHECK(clusters.label.size() == n);
     SURFEL_CHECK(positions.empty() || positions.size() == m);
     PointCloud out;
-    std::vector<Vec3d> sum(m, Vec3d::Zero()), nsum(m, Vec3d::Zero());
+    std::vector<Vec3d> sum(m, Vec3d::Zero()), nsum(normals.empty() ? 0 : m, Vec3d::Zero());
     std::vector<std::array<double, 4>> csum(input.has_colors() ? m : 0, {0, 0, 0, 0});
     std::vector<std::uint32_t> count(m, 0);
     for (std::size_t i = 0; i < n; ++i) {
