@@ -3,10 +3,16 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdlib>
 #include <limits>
 #include <memory>
+#include <new>
 #include <numeric>
 #include <queue>
+
+#if defined(__linux__)
+#include <sys/mman.h>
+#endif
 
 #include <tbb/blocked_range.h>
 #include <tbb/enumerable_thread_specific.h>
@@ -82,6 +88,35 @@ std::size_t SplitItems(std::span<Item> items, const Moments& m, const Spread& s)
     }
     return k;
 }
+
+// An uninitialised item array (every item is written before it is read). Large ones are aligned
+// to 2 MiB and offered to the kernel for transparent huge pages (madvise; a no-op where THP is off
+// or unavailable): the two buffers are 11.6 MB at 362k points, and touching them 4 KiB page by page
+// cost about 2,900 page faults per call.
+class ItemBuffer {
+public:
+    explicit ItemBuffer(std::size_t n) {
+        constexpr std::size_t kHuge = std::size_t(2) << 20;
+        const std::size_t bytes = std::max<std::size_t>(n, 1) * sizeof(Item);
+        if (bytes >= kHuge) {
+            const std::size_t rounded = (bytes + kHuge - 1) / kHuge * kHuge;
+            data_ = static_cast<Item*>(std::aligned_alloc(kHuge, rounded));
+#if defined(__linux__) && defined(MADV_HUGEPAGE)
+            if (data_) madvise(data_, rounded, MADV_HUGEPAGE);
+#endif
+        } else {
+            data_ = static_cast<Item*>(std::malloc(bytes));
+        }
+        if (!data_) throw std::bad_alloc();
+    }
+    ~ItemBuffer() { std::free(data_); }
+    ItemBuffer(const ItemBuffer&) = delete;
+    ItemBuffer& operator=(const ItemBuffer&) = delete;
+    Item* get() const { return data_; }
+
+private:
+    Item* data_ = nullptr;
+};
 
 void FillItems(std::span<const Vec3f> points, std::span<Item> items) {
     Vec3d ref = Vec3d::Zero();
@@ -299,8 +334,7 @@ Clustering HierarchicalClustering(std::span<const Vec3f> points, const SimplifyO
                                   ProgressTracker& progress) {
     const auto n = static_cast<std::uint32_t>(points.size());
     // The two item buffers, not zeroed first (every item is written before it is read).
-    const auto item_buffer = std::make_unique_for_overwrite<Item[]>(n);
-    const auto scratch_buffer = std::make_unique_for_overwrite<Item[]>(n);
+    const ItemBuffer item_buffer(n), scratch_buffer(n);
     const std::span<Item> items(item_buffer.get(), n), scratch(scratch_buffer.get(), n);
     FillItems(points, items);
     std::vector<Node> leaves;
