@@ -2,7 +2,7 @@
 // The split pass of hierarchical clustering (clustering.cpp, notes 2.1.2), compiled twice like
 // the fits' kernels (surface/fit_kernels.h): for the x86-64 baseline and for AVX2, the one to run
 // picked once from the CPU. Each build lives in its own translation unit (split_pass_base.cpp,
-// split_pass_avx2.cpp) that includes nothing but <cstddef>, <cstdint> and the loop of
+// split_pass_avx2.cpp); the AVX2 one includes nothing but <cstddef>, <cstdint> and the loops of
 // split_pass.inc, so no inline function of a shared header is compiled with AVX2.
 //
 // Both builds give the same bits: every sum adds the same terms in the same order (one
