@@ -134,14 +134,6 @@ private:
     Item* data_;
 };
 
-void FillItems(std::span<const Vec3f> points, std::span<Item> items) {
-    Vec3d ref = Vec3d::Zero();
-    for (const Vec3f& p : points) ref += p.cast<double>();
-    if (!points.empty()) ref /= static_cast<double>(points.size());
-    const Vec3f r = ref.cast<float>();
-    for (std::size_t i = 0; i < points.size(); ++i) items[i] = {points[i] - r, static_cast<std::uint32_t>(i)};
-}
-
 // A node of the split tree: items[begin, end), their centroid c and scatter S = sum (p - c)(p - c)^T
 // (the covariance times n), both computed about the parent's centroid in the parent's split pass,
 // so each node's statistics are exact sums over its own items, well conditioned at every depth.
@@ -225,6 +217,19 @@ Node MakeNode(std::span<const Item> items, std::uint32_t begin, std::uint32_t en
     return node;
 }
 
+// The items (points relative to their mean, a better conditioned frame for the moments) and the
+// root node over them. (Adding the root's sums while the items are written, in the same order,
+// gave different last bits of the root's scatter: not done, the outputs stay identical.)
+Node FillItemsAndRoot(std::span<const Vec3f> points, std::span<Item> items, bool adaptive) {
+    Vec3d ref = Vec3d::Zero();
+    for (const Vec3f& p : points) ref += p.cast<double>();
+    if (!points.empty()) ref /= static_cast<double>(points.size());
+    const Vec3f r = ref.cast<float>();
+    const auto n = static_cast<std::uint32_t>(points.size());
+    for (std::uint32_t i = 0; i < n; ++i) items[i] = {points[i] - r, i};
+    return MakeNode(items, 0, n, adaptive);
+}
+
 // The buffer that holds a node's items.
 std::span<Item> BufferOf(const Node& node, std::span<Item> items, std::span<Item> scratch) {
     return node.in_scratch ? scratch : items;
@@ -289,19 +294,17 @@ double MaxPlaneDistance(std::span<const Item> items, Node& node) {
     return d;
 }
 
-// Leaves in order of their first item; each cluster's normal is its covariance's v0 (notes 1.2:
-// the direction of least variation of the cluster's points), unoriented.
+// Each leaf's points labelled, numbered by their smallest input index (Compact: the numbering
+// depends only on which points share a leaf, not on the order the leaves are visited in); each
+// cluster's normal is its covariance's v0 (notes 1.2: the direction of least variation of the
+// cluster's points), unoriented.
 Clustering LabelsFromNodes(std::span<const Item> items, std::span<const Item> scratch, NodeList& leaves,
                            std::size_t n, bool normals) {
-    // Leaves by first item (disjoint ranges: distinct keys), sorted as (begin, leaf) pairs.
-    std::vector<std::pair<std::uint32_t, std::uint32_t>> order(leaves.size());
-    for (std::size_t c = 0; c < leaves.size(); ++c) order[c] = {leaves[c].begin, static_cast<std::uint32_t>(c)};
-    std::sort(order.begin(), order.end());
     const auto buffer = [&](const Node& leaf) { return leaf.in_scratch ? scratch : items; };
     Clustering out;
     out.label.assign(n, 0);
-    for (std::size_t c = 0; c < order.size(); ++c) {
-        const Node& leaf = leaves[order[c].second];
+    for (std::size_t c = 0; c < leaves.size(); ++c) {
+        const Node& leaf = leaves[c];
         const std::span<const Item> buf = buffer(leaf);
         for (std::uint32_t i = leaf.begin; i < leaf.end; ++i) out.label[buf[i].id] = static_cast<std::uint32_t>(c);
     }
@@ -312,8 +315,7 @@ Clustering LabelsFromNodes(std::span<const Item> items, std::span<const Item> sc
     });
     // Compact numbers clusters by their smallest input index; normals follow that numbering.
     out.normals.assign(out.count, Vec3f::Zero());
-    for (std::size_t c = 0; c < order.size(); ++c) {
-        const Node& leaf = leaves[order[c].second];
+    for (const Node& leaf : leaves) {
         if (leaf.size() == 0) continue;
         const Spread& sp = leaf.spread;
         // A normal needs a patch: leave small (under 5 points), elongated (lambda_1 < lambda_2 / 10)
@@ -354,14 +356,13 @@ Clustering HierarchicalClustering(std::span<const Vec3f> points, const SimplifyO
     // The two item buffers, not zeroed first (every item is written before it is read).
     const ItemBuffer item_buffer(n), scratch_buffer(n);
     const std::span<Item> items(item_buffer.get(), n), scratch(scratch_buffer.get(), n);
-    FillItems(points, items);
+    const Node root = FillItemsAndRoot(points, items, options.adaptive);
     NodeList leaves;
     if (options.target > 0) {
         // Priority-queue variant (notes 2.1.2, [BW00, SG01]): always split the cluster of highest
         // priority until there are exactly `target` clusters. The queue holds indices into `nodes`.
         NodeList nodes;
         nodes.reserve(options.target + 1);  // the queue ends with target nodes: no regrowth
-        const Node root = MakeNode(items, 0, n, options.adaptive);
         if (!options.adaptive) {
             // Uniform: phase 1 in parallel up to a size the queue surely passes (leaves of at
             // most 2.5 n / target points, which makes at most about target / 1.7 clusters).
@@ -376,8 +377,7 @@ Clustering HierarchicalClustering(std::span<const Vec3f> points, const SimplifyO
             SplitAbove(items, scratch, root, threshold, local);
             for (auto& l : local) nodes.insert(nodes.end(), l.begin(), l.end());
             if (nodes.size() > options.target) {  // an unbalanced cloud overshot: start over
-                FillItems(points, items);
-                nodes.assign(1, MakeNode(items, 0, n, false));
+                nodes.assign(1, FillItemsAndRoot(points, items, false));
             }
             progress.Advance(0.5);
         } else {
@@ -417,13 +417,13 @@ Clustering HierarchicalClustering(std::span<const Vec3f> points, const SimplifyO
             }
         }
         // Every node is a leaf now (split ones were replaced by their first child): the queued
-        // ones and those that could not be split. No copy: LabelsFromNodes orders them itself.
+        // ones and those that could not be split. No copy: LabelsFromNodes takes them in any order.
         leaves = std::move(nodes);
     } else {
         // Recursive variant: split while larger than n_max, more varied than sigma_max
         // (adaptive) or farther from the cluster plane than the error bound.
         const std::size_t n_max = options.max_cluster_size;
-        NodeList stack{MakeNode(items, 0, n, options.adaptive)};
+        NodeList stack{root};
         std::size_t covered = 0;
         while (!stack.empty()) {
             Node node = std::move(stack.back());
