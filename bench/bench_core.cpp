@@ -70,15 +70,16 @@ void Mls(benchmark::State& state, const std::string& d, float cutoff) {
 }
 
 void SimplifyWith(benchmark::State& state, const std::string& d, SimplifyMethod m, int percent, bool adaptive,
-                  bool positions_only = false) {
+                  bool positions_only = false, std::size_t target = 0) {
     SimplifyOptions o;
     o.positions_only = positions_only;
     o.method = m;
-    o.target = Target(d, percent);
+    const PointCloud& input = Dataset(d);  // read before the timed loop
+    o.target = target ? target : Target(d, percent);
     o.adaptive = adaptive;
     o.measure_error = false;
     SimplifyResult r;
-    for (auto _ : state) r = Simplify(Dataset(d), o);
+    for (auto _ : state) r = Simplify(input, o);
     SimplifyCounters(state, d, r.cloud);
 }
 
@@ -142,6 +143,17 @@ void RenderBench(benchmark::State& state, const std::string& d, const Camera& ca
         Register("simplify_hierarchical-positions_" + std::to_string(pct) + "pct", SimplifyDatasets(),
                  [pct](benchmark::State& s, const std::string& d) {
                      SimplifyWith(s, d, SimplifyMethod::kHierarchical, pct, false, true);
+                 }, 1);
+    // At the count CGAL's hierarchy_simplify_point_set reaches in bench_peer_cgal (its integer
+    // cluster size nearest the target; `points` there): the same output count for the error
+    // comparison. person_scan at 10 %: CGAL's sizes 14 and 15 straddle the target, size 14 gives
+    // 1.1 % more points than the target, so the 10pct row is not at CGAL's count (issue 19.4).
+    for (int pct : {1, 10})
+        Register("simplify_hierarchical-positions-cgal-count_" + std::to_string(pct) + "pct", SimplifyDatasets(),
+                 [pct](benchmark::State& s, const std::string& d) {
+                     const bool merged = d == "bunny_scans_merged";
+                     const std::size_t count = pct == 1 ? (merged ? 3627 : 2431) : (merged ? 36122 : 24550);
+                     SimplifyWith(s, d, SimplifyMethod::kHierarchical, pct, false, true, count);
                  }, 1);
     Register("render_paper_320x250", {"bunny"},
              [](benchmark::State& s, const std::string& d) { RenderBench(s, d, PaperCamera()); });

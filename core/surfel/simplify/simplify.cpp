@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <cmath>
 #include <fstream>
+#include <limits>
 #include <string>
 
 #include "surfel/base/error.h"
@@ -66,37 +67,56 @@ double PeakResidentMiB() {
 // at the centroid (x = y = 0). Still a low-pass average (notes 2: clustering resamples, it does not
 // subsample). Clusters with fewer than kMinFit members, or whose fit is degenerate or moves the
 // point farther than the cluster's thickness, keep the centroid.
+//
+// One cluster at a time over its members in input order (a counting sort by cluster), so its
+// moments and fit sums stay in registers: the same terms added in the same order as adding every
+// point to its cluster's Moments and PolyFit::Add in input order, hence the same bits.
 void RepresentativesOnSurface(std::span<const Vec3f> points, const Clustering& clusters,
                               std::span<const std::uint32_t> count, std::vector<Vec3f>& rep) {
     constexpr std::uint32_t kMinFit = 20;
     const std::size_t n = points.size(), m = clusters.count;
-    std::vector<detail::Moments> mom(m);
-    for (std::size_t i = 0; i < n; ++i)
-        if (count[clusters.label[i]] >= kMinFit) mom[clusters.label[i]].Add(points[i]);
-    std::vector<LocalFrame> frame(m);
-    std::vector<PolyFit> fit;
-    fit.reserve(m);
-    std::vector<double> thickness(m, 0.0);
-    for (std::size_t c = 0; c < m; ++c) {
-        double scale = 1.0;
+    // Members of the fitted clusters (slot s for cluster fitted[s]; kNone for the others), each
+    // cluster's in input order.
+    constexpr std::uint32_t kNone = std::numeric_limits<std::uint32_t>::max();
+    std::vector<std::uint32_t> slot(m, kNone), fitted, start{0};
+    for (std::size_t c = 0; c < m; ++c)
         if (count[c] >= kMinFit) {
-            const detail::Spread sp = detail::Analyze(mom[c]);
-            frame[c] = LocalFrame::FromNormal(mom[c].Centroid(), sp.v0);
-            scale = std::max(std::sqrt(sp.eigenvalues[2]), 1e-30);
-            thickness[c] = 3.0 * std::sqrt(sp.eigenvalues[0]);
+            slot[c] = static_cast<std::uint32_t>(fitted.size());
+            fitted.push_back(static_cast<std::uint32_t>(c));
+            start.push_back(start.back() + count[c]);
         }
-        fit.emplace_back(2, scale);
-    }
-    for (std::size_t i = 0; i < n; ++i) {
-        const std::uint32_t c = clusters.label[i];
-        if (count[c] < kMinFit) continue;
-        const Vec3d l = frame[c].ToLocal(points[i].cast<double>());
-        fit[c].Add(l.x(), l.y(), l.z(), 1.0);
-    }
-    for (std::size_t c = 0; c < m; ++c) {
+    if (fitted.empty()) return;
+    std::vector<std::uint32_t> members(start.back()), next(start.begin(), start.end() - 1);
+    for (std::size_t i = 0; i < n; ++i)
+        if (const std::uint32_t s = slot[clusters.label[i]]; s != kNone) members[next[s]++] = static_cast<std::uint32_t>(i);
+    for (std::size_t s = 0; s < fitted.size(); ++s) {
+        const std::span<const std::uint32_t> mine(members.data() + start[s], start[s + 1] - start[s]);
+        detail::Moments mom;
+        for (const std::uint32_t i : mine) mom.Add(points[i]);
+        const detail::Spread sp = detail::Analyze(mom);
+        const LocalFrame frame = LocalFrame::FromNormal(mom.Centroid(), sp.v0);
+        const double thickness = 3.0 * std::sqrt(sp.eigenvalues[0]);
+        PolyFit fit(2, std::max(std::sqrt(sp.eigenvalues[2]), 1e-30));
+        // PolyFit::AddBatch's terms for weight 1, in its order: the 15 moments, then the 6
+        // right-hand sides (PolyFit::AddSums).
+        const double ih = fit.inv_h();
+        double t[21] = {};
+        for (const std::uint32_t i : mine) {
+            const Vec3d l = frame.ToLocal(points[i].cast<double>());
+            const double xs = l.x() * ih, ys = l.y() * ih, wi = 1.0, zi = l.z();
+            const double wx = wi * xs, wy = wi * ys;
+            const double wxx = wx * xs, wxy = wx * ys, wyy = wy * ys;
+            t[0] += wi, t[1] += wx, t[2] += wy, t[3] += wxx, t[4] += wxy, t[5] += wyy;
+            t[6] += wxx * xs, t[7] += wxx * ys, t[8] += wxy * ys, t[9] += wyy * ys;
+            t[10] += wxx * xs * xs, t[11] += wxx * xs * ys, t[12] += wxx * ys * ys, t[13] += wxy * ys * ys;
+            t[14] += wyy * ys * ys;
+            t[15] += wi * zi, t[16] += wx * zi, t[17] += wy * zi, t[18] += wxx * zi, t[19] += wxy * zi;
+            t[20] += wyy * zi;
+        }
+        fit.AddSums(t);
         PolyCoeffs g;
-        if (count[c] < kMinFit || !fit[c].Solve(&g) || !(std::abs(g.c[0]) <= thickness[c])) continue;
-        rep[c] = frame[c].ToWorld(0.0, 0.0, g.c[0]).cast<float>();
+        if (!fit.Solve(&g) || !(std::abs(g.c[0]) <= thickness)) continue;
+        rep[fitted[s]] = frame.ToWorld(0.0, 0.0, g.c[0]).cast<float>();
     }
 }
 
@@ -106,7 +126,7 @@ PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> nor
     SURFEL_CHECK(clusters.label.size() == n);
     SURFEL_CHECK(positions.empty() || positions.size() == m);
     PointCloud out;
-    std::vector<Vec3d> sum(m, Vec3d::Zero()), nsum(m, Vec3d::Zero());
+    std::vector<Vec3d> sum(m, Vec3d::Zero()), nsum(normals.empty() ? 0 : m, Vec3d::Zero());
     std::vector<std::array<double, 4>> csum(input.has_colors() ? m : 0, {0, 0, 0, 0});
     std::vector<std::uint32_t> count(m, 0);
     for (std::size_t i = 0; i < n; ++i) {

@@ -2,13 +2,14 @@
 // The split pass of hierarchical clustering (clustering.cpp, notes 2.1.2), compiled twice like
 // the fits' kernels (surface/fit_kernels.h): for the x86-64 baseline and for AVX2, the one to run
 // picked once from the CPU. Each build lives in its own translation unit (split_pass_base.cpp,
-// split_pass_avx2.cpp) that includes nothing but <cstddef>, <cstdint> and the loop of
+// split_pass_avx2.cpp); the AVX2 one includes nothing but <cstddef>, <cstdint> and the loops of
 // split_pass.inc, so no inline function of a shared header is compiled with AVX2.
 //
 // Both builds give the same bits: every sum adds the same terms in the same order (one
 // accumulator per sum, the AVX2 build holds three of them in the lanes of one register), the
 // products and differences are elementwise, no FMA and no contraction. Setting the environment
-// variable SURFEL_FIT_KERNELS=baseline picks the baseline build on any CPU.
+// variable SURFEL_FIT_KERNELS=baseline picks the baseline build on any CPU (the one rule for every
+// twice-compiled loop: PickKernelBuild(), base/kernel_build.h).
 
 #include <cstddef>
 #include <cstdint>

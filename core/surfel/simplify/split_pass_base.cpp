@@ -1,8 +1,7 @@
 // split_pass.inc for the baseline, and the choice between the builds.
 #include "surfel/simplify/split_pass.h"
 
-#include <cstdlib>
-#include <cstring>
+#include "surfel/base/kernel_build.h"
 
 #define SURFEL_SPLIT_ISA baseline
 #include "surfel/simplify/split_pass.inc"
@@ -22,13 +21,7 @@ const Kernels& Baseline() {
 const Kernels& Best() {
     static const Kernels& best = []() -> const Kernels& {
         static const Kernels k{&avx2::Split, "avx2"};
-        const char* force = std::getenv("SURFEL_FIT_KERNELS");
-        if (force && std::strcmp(force, "baseline") == 0) return Baseline();
-#if defined(__x86_64__) || defined(__i386__)
-        __builtin_cpu_init();
-        if (__builtin_cpu_supports("avx2")) return k;
-#endif
-        return Baseline();
+        return PickKernelBuild() == KernelBuild::kAvx2 ? k : Baseline();
     }();
     return best;
 }

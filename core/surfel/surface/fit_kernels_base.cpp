@@ -1,8 +1,7 @@
 // fit_kernels.inc for the x86-64 baseline, and the choice between the builds.
 #include "surfel/surface/fit_kernels.h"
 
-#include <cstdlib>
-#include <cstring>
+#include "surfel/base/kernel_build.h"
 
 #define SURFEL_FIT_ISA baseline
 #include "surfel/surface/fit_kernels.inc"
@@ -35,13 +34,7 @@ const Kernels& Best() {
                                &avx2::SquaredDistances, &avx2::GaussWeights,
                                &avx2::SquaredDistancesAround, &avx2::ToLocal,
                                "avx2"};
-        const char* force = std::getenv("SURFEL_FIT_KERNELS");
-        if (force && std::strcmp(force, "baseline") == 0) return Baseline();
-#if defined(__x86_64__) || defined(__i386__)
-        __builtin_cpu_init();
-        if (__builtin_cpu_supports("avx2")) return k;
-#endif
-        return Baseline();
+        return PickKernelBuild() == KernelBuild::kAvx2 ? k : Baseline();
     }();
     return best;
 }

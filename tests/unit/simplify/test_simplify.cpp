@@ -270,6 +270,47 @@ TEST(Simplify, HierarchicalSplitPassBuildsAgreeToTheBitAndMatchAPlainLoop) {
     for (int j = 0; j < 18; ++j) EXPECT_NEAR(sb[j], ref[j], 1e-12 * (1.0 + std::abs(ref[j]))) << j;
 }
 
+// The split pass's sums are those of one loop that adds each item's terms to its side's sums in
+// visiting order, to the bit (the pass partitions first and sums each side's contiguous items
+// afterwards, the positive side backwards; the AVX2 build tests four items at a time with a tail),
+// for every count from 0 to 13 (all tails of the four-item loop), a cut that puts everything on
+// one side, and either side the longer.
+TEST(Simplify, HierarchicalSplitPassSumsAreASequentialLoopsToTheBit) {
+    struct Item {
+        float x, y, z;
+        std::uint32_t id;
+    };
+    std::mt19937_64 rng(11);
+    const auto uniform = [&](double lo, double hi) { return lo + (hi - lo) * double(rng() >> 11) * 0x1p-53; };
+    const float o[3] = {0.05f, -0.1f, 0.2f}, axis[3] = {0.0f, 0.6f, 0.8f};
+    for (const split_pass::Kernels* k : {&split_pass::Baseline(), &split_pass::Best()}) {
+        for (const float cut : {-10.0f, -0.3f, 0.0f, 0.4f, 10.0f}) {
+            for (std::size_t n = 0; n <= 13; ++n) {
+                std::vector<Item> items(n), dst(n, Item{});
+                for (std::uint32_t i = 0; i < n; ++i)
+                    items[i] = {float(uniform(-1, 1)), float(uniform(-1, 1)), float(uniform(-1, 1)), i};
+                double sums[18], ref[18] = {};
+                std::uint32_t neg = 0;
+                for (const Item& it : items) {
+                    const bool is_neg = it.x * axis[0] + it.y * axis[1] + it.z * axis[2] < cut;
+                    neg += is_neg;
+                    const double x = double(it.x - o[0]), y = double(it.y - o[1]), z = double(it.z - o[2]);
+                    double* t = ref + (is_neg ? 0 : 9);
+                    const double terms[9] = {x, y, z, x * x, y * x, z * x, y * y, z * y, z * z};
+                    for (int j = 0; j < 9; ++j) t[j] += terms[j];
+                }
+                const std::uint32_t got = k->split(items.data(), n, dst.data(), o, axis, cut, sums);
+                ASSERT_EQ(got, neg) << k->isa << " n " << n << " cut " << cut;
+                EXPECT_EQ(std::memcmp(sums, ref, sizeof ref), 0) << k->isa << " n " << n << " cut " << cut;
+                std::vector<std::uint32_t> ids;
+                for (const Item& it : dst) ids.push_back(it.id);
+                std::sort(ids.begin(), ids.end());
+                for (std::uint32_t i = 0; i < n; ++i) EXPECT_EQ(ids[i], i) << k->isa << " n " << n;  // a permutation
+            }
+        }
+    }
+}
+
 TEST(Simplify, HierarchicalKeepsCoincidentPointsTogether) {
     // 4 distinct positions, 50 copies each: a cluster of equal points has no spread and is never
     // split, so the target of 4 gives the 4 positions and a larger one cannot give more.
