@@ -77,15 +77,7 @@ PairFit FitPair(const Quadric& qu, const Quadric& qv, const Eigen::Vector3d& pu,
     const Eigen::Matrix3d a = q.A();
     const Eigen::Vector3d b = q.B();
     const Eigen::Vector3d mid = 0.5 * (pu + pv), e = pv - pu;
-    Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> solver;
-    solver.computeDirect(a);
-    const Eigen::Vector3d lambda = solver.eigenvalues();
-    const Eigen::Matrix3d& v = solver.eigenvectors();
-    const double limit = std::max(lambda.maxCoeff(), 0.0) * 1e-3;
-    const Eigen::Vector3d r = v.transpose() * (b - a * mid);
-    Eigen::Vector3d x = mid;
-    for (int i = 0; i < 3; ++i)
-        if (lambda[i] > limit && lambda[i] > 0) x += v.col(i) * (r[i] / lambda[i]);
+    Eigen::Vector3d x = MinimizeQuadric(a, b, mid);
     if ((x - mid).squaredNorm() > e.squaredNorm()) {
         const double a2 = e.dot(a * e), b1 = 2.0 * (pu.dot(a * e) - b.dot(e));
         const double t = a2 > 0 ? std::clamp(-b1 / (2.0 * a2), 0.0, 1.0) : 0.5;

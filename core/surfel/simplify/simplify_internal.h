@@ -3,6 +3,7 @@
 
 #include <Eigen/Core>
 #include <Eigen/Eigenvalues>
+#include <algorithm>
 #include <cstdint>
 #include <span>
 #include <vector>
@@ -51,6 +52,37 @@ struct Spread {
     }
 };
 Spread Analyze(const Moments& m);
+
+/// The minimiser of the quadric x^T a x - 2 b^T x (a symmetric, positive semi-definite) by a
+/// truncated pseudo-inverse around `mid`: the eigen-directions whose eigenvalue is at most 1e-3 of
+/// the largest stay at `mid` (iterative simplification, notes 2.2: the tangent directions of a
+/// flat region). When the invariants of `a` prove that every eigenvalue passes (the smallest is at
+/// least det / e2, the largest at most the trace, e2 the sum of the principal 2x2 minors, with a
+/// 1 % margin) the full inverse (adjugate / det) gives the same point without the eigen solve.
+inline Eigen::Vector3d MinimizeQuadric(const Eigen::Matrix3d& a, const Eigen::Vector3d& b, const Eigen::Vector3d& mid) {
+    const double a00 = a(0, 0), a01 = a(0, 1), a02 = a(0, 2), a11 = a(1, 1), a12 = a(1, 2), a22 = a(2, 2);
+    const double c00 = a11 * a22 - a12 * a12, c01 = a02 * a12 - a01 * a22, c02 = a01 * a12 - a02 * a11;
+    const double c11 = a00 * a22 - a02 * a02, c12 = a01 * a02 - a00 * a12, c22 = a00 * a11 - a01 * a01;
+    const double det = a00 * c00 + a01 * c01 + a02 * c02;
+    const double trace = a00 + a11 + a22, e2 = c00 + c11 + c22;
+    const Eigen::Vector3d g = b - a * mid;
+    if (det > 0 && det > 1.01e-3 * trace * e2) {
+        const double inv = 1.0 / det;
+        return mid + inv * Eigen::Vector3d(c00 * g.x() + c01 * g.y() + c02 * g.z(),
+                                           c01 * g.x() + c11 * g.y() + c12 * g.z(),
+                                           c02 * g.x() + c12 * g.y() + c22 * g.z());
+    }
+    Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> solver;
+    solver.computeDirect(a);
+    const Eigen::Vector3d lambda = solver.eigenvalues();
+    const Eigen::Matrix3d& v = solver.eigenvectors();
+    const double limit = std::max(lambda.maxCoeff(), 0.0) * 1e-3;
+    const Eigen::Vector3d r = v.transpose() * g;
+    Eigen::Vector3d x = mid;
+    for (int i = 0; i < 3; ++i)
+        if (lambda[i] > limit && lambda[i] > 0) x += v.col(i) * (r[i] / lambda[i]);
+    return x;
+}
 
 // Random, the portable generator, comes with the particle engine (surfel/resample/particle_engine.h).
 
