@@ -470,7 +470,25 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
         // Contract the best pair: v (the higher input index) into u.
         const std::uint32_t u = at[best[top].lo], v = at[best[top].hi];
         const std::uint32_t v_input = best[top].hi;
+        // The loop waits on memory (each pair touches rows, quadrics and keys scattered over the
+        // pool): ask for all of a contraction's lines at once, while the pair's fit computes.
+        auto prefetch_row = [&](std::uint32_t w) {
+            const Entry* row = pool.data() + start[w];
+            for (std::uint32_t e = 0; e < degree[w]; e += 4) __builtin_prefetch(row + e);
+        };
+        prefetch_row(u);
+        prefetch_row(v);
         const PairFit f = fit(u, v);
+        for (const std::uint32_t x : {u, v})
+            for (std::uint32_t e = start[x]; e < start[x] + degree[x]; ++e) {
+                const std::uint32_t w = pool[e].id;
+                prefetch_row(w);
+                __builtin_prefetch(&quadric[w]);
+                __builtin_prefetch(reinterpret_cast<const char*>(&quadric[w]) + 64);
+                __builtin_prefetch(&pos[w]);
+                __builtin_prefetch(&best[w]);
+                __builtin_prefetch(&mark[w]);
+            }
         pos[u] = f.x;
         quadric[u] += quadric[v];
         alive[v] = 0;
