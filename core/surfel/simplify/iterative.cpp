@@ -137,9 +137,16 @@ public:
         const auto addr = reinterpret_cast<std::uintptr_t>(storage_.data() + 1);
         heap_ = storage_.data() + ((64 - addr % 64) % 64) / sizeof(Slot);
         size_ = static_cast<std::uint32_t>(n);
-        for (std::uint32_t i = 0; i < size_; ++i) heap_[i] = SlotOf(i);
-        std::sort(heap_, heap_ + size_, [this](const Slot& a, const Slot& b) { return Less(a, b); });
-        for (std::uint32_t i = 0; i < size_; ++i) pos_[heap_[i].node] = i;  // a sorted array is a heap
+        for (std::uint32_t i = 0; i < size_; ++i) {
+            heap_[i] = SlotOf(i);
+            pos_[i] = i;
+        }
+        // Floyd's bottom-up construction (a sorted array would put the two ends of each pair, which
+        // share a key, next to each other, and every comparison between them reads their keys).
+        for (std::uint32_t i = size_ / 4 + 1; i-- > 0;) {
+            const Slot s = heap_[i];  // Down overwrites heap_[i]
+            Down(i, s);
+        }
     }
     std::uint32_t top() const { return heap_[0].node; }
     /// Re-sorts node u after its key changed.
