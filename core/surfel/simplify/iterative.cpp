@@ -15,6 +15,7 @@
 #include <tbb/parallel_sort.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <limits>
 
@@ -107,6 +108,12 @@ constexpr std::uint32_t kNone = UINT32_MAX;
 struct Entry {
     double cost;
     std::uint32_t id, input;
+};
+
+/// A node's list in the pool ([start, start + degree), room for capacity) and its mark (the last
+/// contraction that visited it): one cache line holds all a contraction needs to find the list.
+struct NodeRow {
+    std::uint32_t start = 0, degree = 0, capacity = 0, mark = 0;
 };
 
 /// The order of pairs: (cost, lower input index, higher input index), as a queue of all pairs
@@ -274,36 +281,50 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
     std::vector<std::uint32_t> at(n);  // input index -> position
     for (std::uint32_t i = 0; i < n; ++i) at[input_of[i]] = i;
 
-    // Symmetric neighbour graph, each row sorted by input index and without repeats.
-    std::vector<std::uint32_t> first(n + 1, 0), degree(n, 0), capacity(n, 0);
-    for (std::uint32_t i = 0; i < n; ++i) {
-        const auto row = knn.Row(input_of[i]);
-        for (int c = 0; c < k; ++c) {
-            const std::uint32_t j = row[c];
-            if (j == kNone) continue;
-            ++degree[i];
-            ++degree[at[j]];
-        }
-    }
-    for (std::size_t i = 0; i < n; ++i) first[i + 1] = first[i] + degree[i];
-    std::vector<std::uint32_t> graph(first[n]);  // input indices
+    // Symmetric neighbour graph, each row sorted by input index and without repeats. Built in
+    // parallel: counts and slots by atomic increments (the order within a row depends on the
+    // threads, its sorted contents do not).
+    std::vector<std::uint32_t> first(n + 1, 0);
+    std::vector<NodeRow> rows(n);
+    std::vector<std::uint32_t> graph_storage;
     {
-        std::vector<std::uint32_t> fill(first.begin(), first.end() - 1);
-        for (std::uint32_t i = 0; i < n; ++i) {
-            const auto row = knn.Row(input_of[i]);
-            for (int c = 0; c < k; ++c) {
-                const std::uint32_t j = row[c];
-                if (j == kNone) continue;
-                graph[fill[i]++] = j;
-                graph[fill[at[j]]++] = input_of[i];
-            }
-        }
+        std::vector<std::atomic<std::uint32_t>> count(n);
+        tbb::parallel_for(tbb::blocked_range<std::uint32_t>(0, static_cast<std::uint32_t>(n), 4096),
+                          [&](const tbb::blocked_range<std::uint32_t>& r) {
+                              for (std::uint32_t i = r.begin(); i != r.end(); ++i) {
+                                  const auto row = knn.Row(input_of[i]);
+                                  std::uint32_t own = 0;
+                                  for (int c = 0; c < k; ++c) {
+                                      const std::uint32_t j = row[c];
+                                      if (j == kNone) continue;
+                                      ++own;
+                                      count[at[j]].fetch_add(1, std::memory_order_relaxed);
+                                  }
+                                  count[i].fetch_add(own, std::memory_order_relaxed);
+                              }
+                          });
+        for (std::size_t i = 0; i < n; ++i) first[i + 1] = first[i] + count[i].load(std::memory_order_relaxed);
+        for (std::size_t i = 0; i < n; ++i) count[i].store(first[i], std::memory_order_relaxed);
+        std::vector<std::uint32_t>(first[n]).swap(graph_storage);
+        tbb::parallel_for(tbb::blocked_range<std::uint32_t>(0, static_cast<std::uint32_t>(n), 4096),
+                          [&](const tbb::blocked_range<std::uint32_t>& r) {
+                              for (std::uint32_t i = r.begin(); i != r.end(); ++i) {
+                                  const auto row = knn.Row(input_of[i]);
+                                  for (int c = 0; c < k; ++c) {
+                                      const std::uint32_t j = row[c];
+                                      if (j == kNone) continue;
+                                      graph_storage[count[i].fetch_add(1, std::memory_order_relaxed)] = j;
+                                      graph_storage[count[at[j]].fetch_add(1, std::memory_order_relaxed)] = input_of[i];
+                                  }
+                              }
+                          });
     }
+    std::vector<std::uint32_t>& graph = graph_storage;  // input indices
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 4096), [&](const tbb::blocked_range<std::size_t>& r) {
         for (std::size_t i = r.begin(); i != r.end(); ++i) {
             auto b = graph.begin() + first[i], e = graph.begin() + first[i + 1];
             std::sort(b, e);
-            degree[i] = static_cast<std::uint32_t>(std::unique(b, e) - b);
+            rows[i].degree = static_cast<std::uint32_t>(std::unique(b, e) - b);
         }
     });
 
@@ -315,7 +336,7 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 4096), [&](const tbb::blocked_range<std::size_t>& r) {
         for (std::size_t i = r.begin(); i != r.end(); ++i) {
             const Eigen::Vector3d ni = normals[input_of[i]].cast<double>();
-            for (std::uint32_t e = first[i]; e < first[i] + degree[i]; ++e) {
+            for (std::uint32_t e = first[i]; e < first[i] + rows[i].degree; ++e) {
                 const Eigen::Vector3d d = pos[i] - pos[at[graph[e]]];
                 Eigen::Vector3d plane = d.cross(d.cross(ni));
                 const double len = plane.norm();
@@ -323,7 +344,7 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
                 if (plane.dot(ni) < 0) plane = -plane;
                 quadric[i].AddPlane(plane, pos[i]);
             }
-            if (degree[i] == 0) quadric[i].AddPlane(ni, pos[i]);
+            if (rows[i].degree == 0) quadric[i].AddPlane(ni, pos[i]);
         }
     });
     progress.Advance(0.1);
@@ -346,15 +367,15 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
     // outgrows its room moves to the end of the pool.
     std::vector<Entry> pool(static_cast<std::size_t>(first[n]));
     pool.reserve(static_cast<std::size_t>(first[n]) * 2);
-    std::vector<std::uint32_t> start(first.begin(), first.end() - 1);
+    for (std::size_t i = 0; i < n; ++i) rows[i].start = first[i];
     // Every pair's cost, evaluated once from its lower end (by input index).
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 1024), [&](const tbb::blocked_range<std::size_t>& r) {
         for (std::size_t i = r.begin(); i != r.end(); ++i) {
-            capacity[i] = first[i + 1] - first[i];
+            rows[i].capacity = first[i + 1] - first[i];
             for (std::uint32_t e = first[i]; e < first[i + 1]; ++e) {
                 const std::uint32_t j = graph[e];
                 pool[e] = {kNever, at[j], j};
-                if (e < first[i] + degree[i] && j > input_of[i])
+                if (e < first[i] + rows[i].degree && j > input_of[i])
                     pool[e].cost = cost_of(static_cast<std::uint32_t>(i), at[j]);
             }
         }
@@ -364,11 +385,11 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 1024), [&](const tbb::blocked_range<std::size_t>& r) {
         for (std::size_t i = r.begin(); i != r.end(); ++i) {
             const std::uint32_t self = input_of[i];
-            for (std::uint32_t e = start[i]; e < start[i] + degree[i]; ++e) {
+            for (std::uint32_t e = rows[i].start; e < rows[i].start + rows[i].degree; ++e) {
                 if (pool[e].input > self) continue;
                 const std::uint32_t j = pool[e].id;
-                const Entry* b = pool.data() + start[j];
-                const Entry* hit = std::lower_bound(b, b + degree[j], self,
+                const Entry* b = pool.data() + rows[j].start;
+                const Entry* hit = std::lower_bound(b, b + rows[j].degree, self,
                                                     [](const Entry& x, std::uint32_t id) { return x.input < id; });
                 pool[e].cost = hit->cost;
             }
@@ -381,7 +402,7 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
     auto rescan = [&](std::uint32_t u) {
         PairKey b;
         const std::uint32_t self = input_of[u];
-        for (std::uint32_t e = start[u]; e < start[u] + degree[u]; ++e) {
+        for (std::uint32_t e = rows[u].start; e < rows[u].start + rows[u].degree; ++e) {
             const PairKey key = KeyOf(pool[e].cost, self, pool[e].input);
             if (key < b) b = key;
         }
@@ -394,7 +415,7 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
     NodeHeap heap(best);
     heap.Build();
     auto entry_of = [&](std::uint32_t w, std::uint32_t id) -> Entry* {
-        for (std::uint32_t e = start[w]; e < start[w] + degree[w]; ++e)
+        for (std::uint32_t e = rows[w].start; e < rows[w].start + rows[w].degree; ++e)
             if (pool[e].id == id) return &pool[e];
         return nullptr;
     };
@@ -414,7 +435,7 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
     };
 
     std::vector<char> alive(n, 1);
-    std::vector<std::uint32_t> parent(n), mark(n, 0);
+    std::vector<std::uint32_t> parent(n);
     std::vector<Entry> merged;  // cost unused
     for (std::uint32_t i = 0; i < n; ++i) parent[i] = i;
     std::uint32_t epoch = 0;
@@ -438,15 +459,15 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
             const KdTree live_tree(live);
             const KnnTable live_knn = live_tree.KnnAll(std::min<int>(k, static_cast<int>(live.size()) - 1));
             auto append = [&](std::uint32_t u, std::uint32_t v) {
-                if (degree[u] == capacity[u]) {
+                if (rows[u].degree == rows[u].capacity) {
                     const std::uint32_t moved = static_cast<std::uint32_t>(pool.size());
-                    const std::uint32_t cap = std::max<std::uint32_t>(4, 2 * capacity[u]);
+                    const std::uint32_t cap = std::max<std::uint32_t>(4, 2 * rows[u].capacity);
                     pool.resize(moved + cap);
-                    std::copy_n(pool.begin() + start[u], degree[u], pool.begin() + moved);
-                    start[u] = moved;
-                    capacity[u] = cap;
+                    std::copy_n(pool.begin() + rows[u].start, rows[u].degree, pool.begin() + moved);
+                    rows[u].start = moved;
+                    rows[u].capacity = cap;
                 }
-                pool[start[u] + degree[u]++] = {kNever, v, input_of[v]};
+                pool[rows[u].start + rows[u].degree++] = {kNever, v, input_of[v]};
             };
             for (std::uint32_t a = 0; a < live.size(); ++a)
                 for (const std::uint32_t b : live_knn.Row(a)) {
@@ -459,7 +480,7 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
                 }
             for (std::uint32_t a = 0; a < live.size(); ++a) {
                 const std::uint32_t u = ids[a];
-                for (std::uint32_t e = start[u]; e < start[u] + degree[u]; ++e) {
+                for (std::uint32_t e = rows[u].start; e < rows[u].start + rows[u].degree; ++e) {
                     const std::uint32_t w = pool[e].id;
                     if (pool[e].input > input_of[u]) {
                         pool[e].cost = cost_of(u, w);
@@ -478,24 +499,26 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
         const std::uint32_t u = at[best[top].lo], v = at[best[top].hi];
         const std::uint32_t v_input = best[top].hi;
         // The loop waits on memory (each pair touches rows, quadrics and keys scattered over the
-        // pool): ask for all of a contraction's lines at once, while the pair's fit computes.
+        // pool): ask for all of a contraction's lines at once, in two waves (a list's place, then
+        // the list), while the pair's fit computes.
         auto prefetch_row = [&](std::uint32_t w) {
-            const Entry* row = pool.data() + start[w];
-            for (std::uint32_t e = 0; e < degree[w]; e += 4) __builtin_prefetch(row + e);
+            const Entry* row = pool.data() + rows[w].start;
+            for (std::uint32_t e = 0; e < rows[w].degree; e += 4) __builtin_prefetch(row + e);
         };
         prefetch_row(u);
         prefetch_row(v);
         const PairFit f = fit(u, v);
         for (const std::uint32_t x : {u, v})
-            for (std::uint32_t e = start[x]; e < start[x] + degree[x]; ++e) {
+            for (std::uint32_t e = rows[x].start; e < rows[x].start + rows[x].degree; ++e) {
                 const std::uint32_t w = pool[e].id;
-                prefetch_row(w);
+                __builtin_prefetch(&rows[w]);
                 __builtin_prefetch(&quadric[w]);
                 __builtin_prefetch(reinterpret_cast<const char*>(&quadric[w]) + 64);
                 __builtin_prefetch(&pos[w]);
                 __builtin_prefetch(&best[w]);
-                __builtin_prefetch(&mark[w]);
             }
+        for (const std::uint32_t x : {u, v})
+            for (std::uint32_t e = rows[x].start; e < rows[x].start + rows[x].degree; ++e) prefetch_row(pool[e].id);
         pos[u] = f.x;
         quadric[u] += quadric[v];
         alive[v] = 0;
@@ -505,37 +528,37 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
         // u's new neighbours: its own and v's, without u and v. v's neighbours now point to u.
         ++epoch;
         merged.clear();
-        mark[u] = mark[v] = epoch;
-        for (std::uint32_t e = start[u]; e < start[u] + degree[u]; ++e)
-            if (mark[pool[e].id] != epoch) {
-                mark[pool[e].id] = epoch;
+        rows[u].mark = rows[v].mark = epoch;
+        for (std::uint32_t e = rows[u].start; e < rows[u].start + rows[u].degree; ++e)
+            if (rows[pool[e].id].mark != epoch) {
+                rows[pool[e].id].mark = epoch;
                 merged.push_back(pool[e]);
             }
-        for (std::uint32_t e = start[v]; e < start[v] + degree[v]; ++e) {
+        for (std::uint32_t e = rows[v].start; e < rows[v].start + rows[v].degree; ++e) {
             const std::uint32_t w = pool[e].id;
             if (w == u) continue;
             Entry* at_w = entry_of(w, v);
-            if (mark[w] == epoch) {
-                *at_w = pool[start[w] + --degree[w]];  // w knew both: drop v
+            if (rows[w].mark == epoch) {
+                *at_w = pool[rows[w].start + --rows[w].degree];  // w knew both: drop v
             } else {
                 at_w->id = u;
                 at_w->input = input_of[u];
-                mark[w] = epoch;
+                rows[w].mark = epoch;
                 merged.push_back(pool[e]);
             }
         }
-        degree[v] = 0;
-        if (merged.size() > capacity[u]) {
+        rows[v].degree = 0;
+        if (merged.size() > rows[u].capacity) {
             const std::uint32_t cap = static_cast<std::uint32_t>(merged.size() + merged.size() / 2);
-            start[u] = static_cast<std::uint32_t>(pool.size());
-            capacity[u] = cap;
+            rows[u].start = static_cast<std::uint32_t>(pool.size());
+            rows[u].capacity = cap;
             pool.resize(pool.size() + cap);
         }
-        degree[u] = static_cast<std::uint32_t>(merged.size());
+        rows[u].degree = static_cast<std::uint32_t>(merged.size());
         for (std::size_t j = 0; j < merged.size(); ++j) {
             const std::uint32_t w = merged[j].id;
             const double cost = cost_of(u, w);
-            pool[start[u] + j] = {cost, w, merged[j].input};
+            pool[rows[u].start + j] = {cost, w, merged[j].input};
             set_cost_at(w, u, cost, v_input);
         }
         rescan(u);
