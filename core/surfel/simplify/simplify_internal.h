@@ -4,6 +4,7 @@
 #include <Eigen/Core>
 #include <Eigen/Eigenvalues>
 #include <algorithm>
+#include <cmath>
 #include <cstdint>
 #include <span>
 #include <vector>
@@ -71,6 +72,32 @@ inline Eigen::Vector3d MinimizeQuadric(const Eigen::Matrix3d& a, const Eigen::Ve
         return mid + inv * Eigen::Vector3d(c00 * g.x() + c01 * g.y() + c02 * g.z(),
                                            c01 * g.x() + c11 * g.y() + c12 * g.z(),
                                            c02 * g.x() + c12 * g.y() + c22 * g.z());
+    }
+    // Only the largest eigenvalue passes when the two others, whose sum s = trace - l3 obeys
+    // l3 s <= e2, are proven at most 1e-3 l3: l3 >= r+ and s <= r- = e2 / r+ for the roots r+-
+    // of l (trace - l) = e2 (l3 >= trace / 3 > r- when e2 < 2 trace^2 / 9), 1 % margin. Then
+    // x = mid + v3 (v3 . g) / l3, l3 by Newton's method on the characteristic polynomial from
+    // the trace down (monotone: the polynomial is increasing and convex beyond its largest root),
+    // v3 the largest cross product of two rows of a - l3 I.
+    if (trace > 0 && e2 < (2.0 / 9.0) * trace * trace) {
+        const double r_plus = 0.5 * (trace + std::sqrt(trace * trace - 4.0 * e2));
+        if (e2 < 0.99e-3 * r_plus * r_plus) {
+            double l3 = trace;
+            for (int it = 0; it < 32; ++it) {
+                const double p = ((l3 - trace) * l3 + e2) * l3 - det;
+                const double dp = (3.0 * l3 - 2.0 * trace) * l3 + e2;
+                if (!(dp > 0)) break;
+                const double next = l3 - p / dp;
+                if (!(next < l3)) break;
+                l3 = next;
+            }
+            const Eigen::Vector3d r0(a00 - l3, a01, a02), r1(a01, a11 - l3, a12), r2(a02, a12, a22 - l3);
+            const Eigen::Vector3d x01 = r0.cross(r1), x02 = r0.cross(r2), x12 = r1.cross(r2);
+            const double n01 = x01.squaredNorm(), n02 = x02.squaredNorm(), n12 = x12.squaredNorm();
+            const Eigen::Vector3d& w = n01 >= n02 && n01 >= n12 ? x01 : (n02 >= n12 ? x02 : x12);
+            const double wn = std::max({n01, n02, n12});
+            if (wn > 0 && l3 > 0) return mid + w * (w.dot(g) / (wn * l3));
+        }
     }
     Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> solver;
     solver.computeDirect(a);
