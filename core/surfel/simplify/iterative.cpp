@@ -158,6 +158,11 @@ public:
         }
     }
     std::uint32_t top() const { return heap_[0].node; }
+    /// Asks for node u's position (first wave) or its slot (second wave) ahead of an Update.
+    void PrefetchPosition(std::uint32_t u) const { __builtin_prefetch(&pos_[u]); }
+    void PrefetchSlot(std::uint32_t u) const {
+        if (pos_[u] != kNone) __builtin_prefetch(heap_ + pos_[u]);
+    }
     /// Re-sorts node u after its key changed.
     void Update(std::uint32_t u) {
         const std::uint32_t i = pos_[u];
@@ -523,9 +528,13 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
                 __builtin_prefetch(reinterpret_cast<const char*>(&quadric[w]) + 64);
                 __builtin_prefetch(&pos[w]);
                 __builtin_prefetch(&best[w]);
+                heap.PrefetchPosition(w);
             }
         for (const std::uint32_t x : {u, v})
-            for (std::uint32_t e = rows[x].start; e < rows[x].start + rows[x].degree; ++e) prefetch_row(pool[e].id);
+            for (std::uint32_t e = rows[x].start; e < rows[x].start + rows[x].degree; ++e) {
+                prefetch_row(pool[e].id);
+                heap.PrefetchSlot(pool[e].id);
+            }
         pos[u] = f.x;
         quadric[u] += quadric[v];
         alive[v] = 0;
