@@ -59,7 +59,10 @@ Spread Analyze(const Moments& m);
 /// the largest stay at `mid` (iterative simplification, notes 2.2: the tangent directions of a
 /// flat region). When the invariants of `a` prove that every eigenvalue passes (the smallest is at
 /// least det / e2, the largest at most the trace, e2 the sum of the principal 2x2 minors, with a
-/// 1 % margin) the full inverse (adjugate / det) gives the same point without the eigen solve.
+/// 1 % margin) the full inverse (adjugate / det) gives the same point without the eigen solve;
+/// when they prove that only the largest passes, its eigenpair alone (found without the solve).
+/// Otherwise (creases: two eigenvalues pass, or too close to the 1e-3 line to tell) Eigen's
+/// direct 3x3 solve. The shortcuts agree with the solve to rounding, not to the bit.
 inline Eigen::Vector3d MinimizeQuadric(const Eigen::Matrix3d& a, const Eigen::Vector3d& b, const Eigen::Vector3d& mid) {
     const double a00 = a(0, 0), a01 = a(0, 1), a02 = a(0, 2), a11 = a(1, 1), a12 = a(1, 2), a22 = a(2, 2);
     const double c00 = a11 * a22 - a12 * a12, c01 = a02 * a12 - a01 * a22, c02 = a01 * a12 - a02 * a11;
