@@ -4,16 +4,20 @@
 //
 // Layout (docs/simplification.md, "Iterative"): the graph lives in one pool of adjacency entries
 // (neighbour, cost of the pair), a node's entries contiguous; every node keeps its cheapest pair,
-// and an indexed heap of the nodes orders those. A contraction re-evaluates the survivor's pairs
-// once each (both entries of a pair hold the same cost) and repairs the best pair of the nodes it
-// touched; nothing stale ever enters the heap. The order of contractions is the one of a priority
-// queue of all pairs by (cost, lower index, higher index): the same result as the lazy queue of
-// the first version, several times faster.
+// and an indexed 4-ary heap of the nodes orders those. A contraction re-evaluates the survivor's
+// pairs once each (both entries of a pair hold the same cost) and repairs the best pair of the
+// nodes it touched; nothing stale ever enters the heap. The order of contractions is the one of a
+// priority queue of all pairs by (cost, lower index, higher index): the same result as the lazy
+// queue of the first version, several times faster. The points are kept in Morton order, every
+// order and tie still by input index, and a contraction prefetches the lines it will touch
+// (session 11: the loop waits on memory, not on arithmetic).
 
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
+#include <tbb/parallel_sort.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <limits>
 
@@ -76,15 +80,7 @@ PairFit FitPair(const Quadric& qu, const Quadric& qv, const Eigen::Vector3d& pu,
     const Eigen::Matrix3d a = q.A();
     const Eigen::Vector3d b = q.B();
     const Eigen::Vector3d mid = 0.5 * (pu + pv), e = pv - pu;
-    Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> solver;
-    solver.computeDirect(a);
-    const Eigen::Vector3d lambda = solver.eigenvalues();
-    const Eigen::Matrix3d& v = solver.eigenvectors();
-    const double limit = std::max(lambda.maxCoeff(), 0.0) * 1e-3;
-    const Eigen::Vector3d r = v.transpose() * (b - a * mid);
-    Eigen::Vector3d x = mid;
-    for (int i = 0; i < 3; ++i)
-        if (lambda[i] > limit && lambda[i] > 0) x += v.col(i) * (r[i] / lambda[i]);
+    Eigen::Vector3d x = MinimizeQuadric(a, b, mid);
     if ((x - mid).squaredNorm() > e.squaredNorm()) {
         const double a2 = e.dot(a * e), b1 = 2.0 * (pu.dot(a * e) - b.dot(e));
         const double t = a2 > 0 ? std::clamp(-b1 / (2.0 * a2), 0.0, 1.0) : 0.5;
@@ -109,13 +105,21 @@ constexpr double kLengthWeight = 1e-3;
 constexpr double kNever = std::numeric_limits<double>::infinity();  // a pair that must not contract
 constexpr std::uint32_t kNone = UINT32_MAX;
 
-/// One adjacency entry: the neighbour and the cost of contracting the pair.
+/// One adjacency entry: the neighbour (in the spatial numbering), its input index and the cost of
+/// contracting the pair; 16 bytes.
 struct Entry {
     double cost;
-    std::uint32_t id;
+    std::uint32_t id, input;
 };
 
-/// The order of pairs: (cost, lower index, higher index), as a queue of all pairs would pop them.
+/// A node's list in the pool ([start, start + degree), room for capacity) and its mark (the last
+/// contraction that visited it): one cache line holds all a contraction needs to find the list.
+struct NodeRow {
+    std::uint32_t start = 0, degree = 0, capacity = 0, mark = 0;
+};
+
+/// The order of pairs: (cost, lower input index, higher input index), as a queue of all pairs
+/// would pop them. The indices are the input's, whatever order the points are kept in.
 struct PairKey {
     double cost = kNever;
     std::uint32_t lo = kNone, hi = kNone;
@@ -129,32 +133,48 @@ PairKey KeyOf(double cost, std::uint32_t u, std::uint32_t v) {
     return u < v ? PairKey{cost, u, v} : PairKey{cost, v, u};
 }
 
-/// A binary min-heap of nodes by their best pair's key (held in the heap itself, for locality),
-/// with each node's position, so a key can move either way in O(log n).
+/// A 4-ary min-heap of nodes by their best pair's key, with each node's position, so a key can
+/// move either way. A slot holds the cost and the lower index (16 bytes: a node's four children
+/// share one cache line); the rare ties on both read the higher index from the keys.
 class NodeHeap {
 public:
     explicit NodeHeap(std::span<const PairKey> key) : key_(key), pos_(key.size(), kNone) {}
     void Build() {
-        heap_.resize(key_.size());
-        for (std::uint32_t i = 0; i < heap_.size(); ++i) heap_[i] = {key_[i], i};
-        std::sort(heap_.begin(), heap_.end(), [](const Slot& a, const Slot& b) { return Less(a, b); });
-        for (std::uint32_t i = 0; i < heap_.size(); ++i) pos_[heap_[i].node] = i;  // a sorted array is a heap
+        const std::size_t n = key_.size();
+        // Room for the slots with (heap_ + 1) on a 64-byte boundary: children 4i+1..4i+4 share a line.
+        storage_.assign(n + 8, Slot{});
+        const auto addr = reinterpret_cast<std::uintptr_t>(storage_.data() + 1);
+        heap_ = storage_.data() + ((64 - addr % 64) % 64) / sizeof(Slot);
+        size_ = static_cast<std::uint32_t>(n);
+        for (std::uint32_t i = 0; i < size_; ++i) {
+            heap_[i] = SlotOf(i);
+            pos_[i] = i;
+        }
+        // Floyd's bottom-up construction (a sorted array would put the two ends of each pair, which
+        // share a key, next to each other, and every comparison between them reads their keys).
+        for (std::uint32_t i = size_ / 4 + 1; i-- > 0;) {
+            const Slot s = heap_[i];  // Down overwrites heap_[i]
+            Down(i, s);
+        }
     }
-    bool empty() const { return heap_.empty(); }
     std::uint32_t top() const { return heap_[0].node; }
+    /// Asks for node u's position (first wave) or its slot (second wave) ahead of an Update.
+    void PrefetchPosition(std::uint32_t u) const { __builtin_prefetch(&pos_[u]); }
+    void PrefetchSlot(std::uint32_t u) const {
+        if (pos_[u] != kNone) __builtin_prefetch(heap_ + pos_[u]);
+    }
     /// Re-sorts node u after its key changed.
     void Update(std::uint32_t u) {
         const std::uint32_t i = pos_[u];
         if (i == kNone) return;
-        const Slot s{key_[u], u};
-        if (i > 0 && Less(s, heap_[(i - 1) / 2])) Up(i, s);
+        const Slot s = SlotOf(u);
+        if (i > 0 && Less(s, heap_[(i - 1) / 4])) Up(i, s);
         else Down(i, s);
     }
     void Remove(std::uint32_t u) {
         const std::uint32_t i = pos_[u];
         if (i == kNone) return;
-        const Slot last = heap_.back();
-        heap_.pop_back();
+        const Slot last = heap_[--size_];
         pos_[u] = kNone;
         if (last.node == u) return;
         heap_[i] = last;
@@ -163,18 +183,21 @@ public:
     }
 
 private:
-    struct Slot {
-        PairKey key;
-        std::uint32_t node;
+    struct alignas(16) Slot {
+        double cost;
+        std::uint32_t lo, node;
     };
-    static bool Less(const Slot& a, const Slot& b) {
-        if (a.key < b.key) return true;
-        if (b.key < a.key) return false;
+    Slot SlotOf(std::uint32_t u) const { return {key_[u].cost, key_[u].lo, u}; }
+    bool Less(const Slot& a, const Slot& b) const {
+        if (a.cost != b.cost) return a.cost < b.cost;
+        if (a.lo != b.lo) return a.lo < b.lo;
+        const std::uint32_t ha = key_[a.node].hi, hb = key_[b.node].hi;
+        if (ha != hb) return ha < hb;
         return a.node < b.node;  // the two ends of one pair share a key
     }
     void Up(std::uint32_t i, const Slot& s) {
         while (i > 0) {
-            const std::uint32_t p = (i - 1) / 2;
+            const std::uint32_t p = (i - 1) / 4;
             if (!Less(s, heap_[p])) break;
             heap_[i] = heap_[p];
             pos_[heap_[i].node] = i;
@@ -184,23 +207,68 @@ private:
         pos_[s.node] = i;
     }
     void Down(std::uint32_t i, const Slot& s) {
-        const auto n = static_cast<std::uint32_t>(heap_.size());
         for (;;) {
-            std::uint32_t c = 2 * i + 1;
-            if (c >= n) break;
-            if (c + 1 < n && Less(heap_[c + 1], heap_[c])) ++c;
-            if (!Less(heap_[c], s)) break;
-            heap_[i] = heap_[c];
+            const std::uint32_t c = 4 * i + 1;
+            if (c >= size_) break;
+            // The grandchildren (four lines in a row) while the children are compared.
+            if (4 * c + 1 < size_) {
+                const char* g = reinterpret_cast<const char*>(heap_ + 4 * c + 1);
+                for (int line = 0; line < 4; ++line) __builtin_prefetch(g + 64 * line);
+            }
+            const std::uint32_t end = std::min(c + 4, size_);
+            std::uint32_t m = c;
+            for (std::uint32_t j = c + 1; j < end; ++j)
+                if (Less(heap_[j], heap_[m])) m = j;
+            if (!Less(heap_[m], s)) break;
+            heap_[i] = heap_[m];
             pos_[heap_[i].node] = i;
-            i = c;
+            i = m;
         }
         heap_[i] = s;
         pos_[s.node] = i;
     }
     std::span<const PairKey> key_;
-    std::vector<Slot> heap_;
+    std::vector<Slot> storage_;
+    Slot* heap_ = nullptr;
+    std::uint32_t size_ = 0;
     std::vector<std::uint32_t> pos_;
 };
+
+/// A spatial order of the points (Morton order of a 1024^3 grid over the bounding box, ties by
+/// index): neighbours in the graph lie near each other in memory. Returns the input index of
+/// each position in that order.
+std::vector<std::uint32_t> SpatialOrder(std::span<const Vec3f> points) {
+    const std::size_t n = points.size();
+    Eigen::Vector3f lo = Eigen::Vector3f::Constant(std::numeric_limits<float>::max()), hi = -lo;
+    for (const Vec3f& p : points) {
+        lo = lo.cwiseMin(p);
+        hi = hi.cwiseMax(p);
+    }
+    const float extent = (hi - lo).maxCoeff();
+    const float scale = extent > 0 ? 1023.0f / extent : 0.0f;
+    auto spread = [](std::uint64_t x) {  // 10 bits to every third of 30
+        x &= 0x3ff;
+        x = (x | (x << 16)) & 0x30000ff;
+        x = (x | (x << 8)) & 0x300f00f;
+        x = (x | (x << 4)) & 0x30c30c3;
+        x = (x | (x << 2)) & 0x9249249;
+        return x;
+    };
+    std::vector<std::uint64_t> code(n);
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 8192), [&](const tbb::blocked_range<std::size_t>& r) {
+        for (std::size_t i = r.begin(); i != r.end(); ++i) {
+            const Eigen::Vector3f c = ((points[i] - lo) * scale).cwiseMax(0.0f).cwiseMin(1023.0f);
+            const std::uint64_t m = spread(static_cast<std::uint64_t>(c.x())) |
+                                    (spread(static_cast<std::uint64_t>(c.y())) << 1) |
+                                    (spread(static_cast<std::uint64_t>(c.z())) << 2);
+            code[i] = (m << 32) | i;
+        }
+    });
+    tbb::parallel_sort(code.begin(), code.end());  // keys are unique: the order is deterministic
+    std::vector<std::uint32_t> input_of(n);
+    for (std::size_t i = 0; i < n; ++i) input_of[i] = static_cast<std::uint32_t>(code[i] & 0xffffffffu);
+    return input_of;
+}
 
 }  // namespace
 
@@ -217,32 +285,58 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
     }
     const KnnTable& knn = *given_knn;  // rows nearest first: its first k columns are the k-NN graph
 
-    // Symmetric neighbour graph, each row sorted and without repeats, in one pool with room to grow.
-    std::vector<std::uint32_t> first(n + 1, 0), degree(n, 0), capacity(n, 0);
-    for (std::size_t i = 0; i < n; ++i)
-        for (int c = 0; c < k; ++c) {
-            const std::uint32_t j = knn.Row(i)[c];
-            if (j == kNone) continue;
-            ++degree[i];
-            ++degree[j];
-        }
-    for (std::size_t i = 0; i < n; ++i) first[i + 1] = first[i] + degree[i];
-    std::vector<std::uint32_t> graph(first[n]);
+    // The points are kept in a spatial order (position i holds input point input_of[i]) for the
+    // locality of the contraction loop; every order and tie between pairs still goes by input
+    // index, and each sum is taken in the same order as over the input numbering, so the result
+    // is the one of the input order, to the bit.
+    const std::vector<std::uint32_t> input_of = SpatialOrder(points);
+    std::vector<std::uint32_t> at(n);  // input index -> position
+    for (std::uint32_t i = 0; i < n; ++i) at[input_of[i]] = i;
+
+    // Symmetric neighbour graph, each row sorted by input index and without repeats. Built in
+    // parallel: counts and slots by atomic increments (the order within a row depends on the
+    // threads, its sorted contents do not).
+    std::vector<std::uint32_t> first(n + 1, 0);
+    std::vector<NodeRow> rows(n);
+    std::vector<std::uint32_t> graph_storage;
     {
-        std::vector<std::uint32_t> fill(first.begin(), first.end() - 1);
-        for (std::uint32_t i = 0; i < n; ++i)
-            for (int c = 0; c < k; ++c) {
-                const std::uint32_t j = knn.Row(i)[c];
-                if (j == kNone) continue;
-                graph[fill[i]++] = j;
-                graph[fill[j]++] = i;
-            }
+        std::vector<std::atomic<std::uint32_t>> count(n);
+        tbb::parallel_for(tbb::blocked_range<std::uint32_t>(0, static_cast<std::uint32_t>(n), 4096),
+                          [&](const tbb::blocked_range<std::uint32_t>& r) {
+                              for (std::uint32_t i = r.begin(); i != r.end(); ++i) {
+                                  const auto row = knn.Row(input_of[i]);
+                                  std::uint32_t own = 0;
+                                  for (int c = 0; c < k; ++c) {
+                                      const std::uint32_t j = row[c];
+                                      if (j == kNone) continue;
+                                      ++own;
+                                      count[at[j]].fetch_add(1, std::memory_order_relaxed);
+                                  }
+                                  count[i].fetch_add(own, std::memory_order_relaxed);
+                              }
+                          });
+        for (std::size_t i = 0; i < n; ++i) first[i + 1] = first[i] + count[i].load(std::memory_order_relaxed);
+        for (std::size_t i = 0; i < n; ++i) count[i].store(first[i], std::memory_order_relaxed);
+        std::vector<std::uint32_t>(first[n]).swap(graph_storage);
+        tbb::parallel_for(tbb::blocked_range<std::uint32_t>(0, static_cast<std::uint32_t>(n), 4096),
+                          [&](const tbb::blocked_range<std::uint32_t>& r) {
+                              for (std::uint32_t i = r.begin(); i != r.end(); ++i) {
+                                  const auto row = knn.Row(input_of[i]);
+                                  for (int c = 0; c < k; ++c) {
+                                      const std::uint32_t j = row[c];
+                                      if (j == kNone) continue;
+                                      graph_storage[count[i].fetch_add(1, std::memory_order_relaxed)] = j;
+                                      graph_storage[count[at[j]].fetch_add(1, std::memory_order_relaxed)] = input_of[i];
+                                  }
+                              }
+                          });
     }
+    std::vector<std::uint32_t>& graph = graph_storage;  // input indices
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 4096), [&](const tbb::blocked_range<std::size_t>& r) {
         for (std::size_t i = r.begin(); i != r.end(); ++i) {
             auto b = graph.begin() + first[i], e = graph.begin() + first[i + 1];
             std::sort(b, e);
-            degree[i] = static_cast<std::uint32_t>(std::unique(b, e) - b);
+            rows[i].degree = static_cast<std::uint32_t>(std::unique(b, e) - b);
         }
     });
 
@@ -250,19 +344,19 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
     // of n does not matter: a quadric holds n n^T, d n and d^2).
     std::vector<Quadric> quadric(n);
     std::vector<Eigen::Vector3d> pos(n);
-    for (std::uint32_t i = 0; i < n; ++i) pos[i] = points[i].cast<double>();
+    for (std::uint32_t i = 0; i < n; ++i) pos[i] = points[input_of[i]].cast<double>();
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 4096), [&](const tbb::blocked_range<std::size_t>& r) {
         for (std::size_t i = r.begin(); i != r.end(); ++i) {
-            const Eigen::Vector3d ni = normals[i].cast<double>();
-            for (std::uint32_t e = first[i]; e < first[i] + degree[i]; ++e) {
-                const Eigen::Vector3d d = pos[i] - pos[graph[e]];
+            const Eigen::Vector3d ni = normals[input_of[i]].cast<double>();
+            for (std::uint32_t e = first[i]; e < first[i] + rows[i].degree; ++e) {
+                const Eigen::Vector3d d = pos[i] - pos[at[graph[e]]];
                 Eigen::Vector3d plane = d.cross(d.cross(ni));
                 const double len = plane.norm();
                 plane = len > 1e-300 ? Eigen::Vector3d(plane / len) : ni;
                 if (plane.dot(ni) < 0) plane = -plane;
                 quadric[i].AddPlane(plane, pos[i]);
             }
-            if (degree[i] == 0) quadric[i].AddPlane(ni, pos[i]);
+            if (rows[i].degree == 0) quadric[i].AddPlane(ni, pos[i]);
         }
     });
     progress.Advance(0.1);
@@ -270,9 +364,9 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
     // The cost of a pair: the quadric error at its best point plus the length term; pairs whose RMS
     // distance to their planes would exceed the error bound never contract (until one end changes).
     const double bound2 = options.error > 0 ? options.error * options.error : kNever;
-    // Always from the lower index to the higher (the fit is symmetric only up to rounding).
+    // Always from the lower input index to the higher (the fit is symmetric only up to rounding).
     auto fit = [&](std::uint32_t u, std::uint32_t v) {
-        if (u > v) std::swap(u, v);
+        if (input_of[u] > input_of[v]) std::swap(u, v);
         return FitPair(quadric[u], quadric[v], pos[u], pos[v]);
     };
     auto cost_of = [&](std::uint32_t u, std::uint32_t v) {
@@ -283,57 +377,68 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
 
     // The pool: a node's entries at [start, start + degree), room for `capacity`; a node whose list
     // outgrows its room moves to the end of the pool.
-    std::vector<Entry> pool;
+    std::vector<Entry> pool(static_cast<std::size_t>(first[n]));
     pool.reserve(static_cast<std::size_t>(first[n]) * 2);
-    std::vector<std::uint32_t> start(n);
-    for (std::uint32_t i = 0; i < n; ++i) {
-        start[i] = static_cast<std::uint32_t>(pool.size());
-        capacity[i] = first[i + 1] - first[i];
-        for (std::uint32_t e = first[i]; e < first[i + 1]; ++e) pool.push_back({kNever, graph[e]});
-    }
-    std::vector<std::uint32_t>().swap(graph);
-    // Every pair's cost, evaluated once from its lower end and copied to the other end.
+    for (std::size_t i = 0; i < n; ++i) rows[i].start = first[i];
+    // Every pair's cost, evaluated once from its lower end (by input index).
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 1024), [&](const tbb::blocked_range<std::size_t>& r) {
-        for (std::size_t i = r.begin(); i != r.end(); ++i)
-            for (std::uint32_t e = start[i]; e < start[i] + degree[i]; ++e)
-                if (pool[e].id > i) pool[e].cost = cost_of(static_cast<std::uint32_t>(i), pool[e].id);
-    });
-    for (std::uint32_t i = 0; i < n; ++i)
-        for (std::uint32_t e = start[i]; e < start[i] + degree[i]; ++e) {
-            const std::uint32_t j = pool[e].id;
-            if (j > i) continue;
-            const Entry* b = pool.data() + start[j];
-            const Entry* hit = std::lower_bound(b, b + degree[j], i, [](const Entry& x, std::uint32_t id) { return x.id < id; });
-            pool[e].cost = hit->cost;  // rows are still sorted here
+        for (std::size_t i = r.begin(); i != r.end(); ++i) {
+            rows[i].capacity = first[i + 1] - first[i];
+            for (std::uint32_t e = first[i]; e < first[i + 1]; ++e) {
+                const std::uint32_t j = graph[e];
+                pool[e] = {kNever, at[j], j};
+                if (e < first[i] + rows[i].degree && j > input_of[i])
+                    pool[e].cost = cost_of(static_cast<std::uint32_t>(i), at[j]);
+            }
         }
+    });
+    std::vector<std::uint32_t>().swap(graph);
+    // ... and copied to the higher end (rows are still sorted by input index here).
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 1024), [&](const tbb::blocked_range<std::size_t>& r) {
+        for (std::size_t i = r.begin(); i != r.end(); ++i) {
+            const std::uint32_t self = input_of[i];
+            for (std::uint32_t e = rows[i].start; e < rows[i].start + rows[i].degree; ++e) {
+                if (pool[e].input > self) continue;
+                const std::uint32_t j = pool[e].id;
+                const Entry* b = pool.data() + rows[j].start;
+                const Entry* hit = std::lower_bound(b, b + rows[j].degree, self,
+                                                    [](const Entry& x, std::uint32_t id) { return x.input < id; });
+                pool[e].cost = hit->cost;
+            }
+        }
+    });
     progress.Advance(0.1);
 
     // Each node's best pair and the heap over them.
     std::vector<PairKey> best(n);
     auto rescan = [&](std::uint32_t u) {
         PairKey b;
-        for (std::uint32_t e = start[u]; e < start[u] + degree[u]; ++e) {
-            const PairKey key = KeyOf(pool[e].cost, u, pool[e].id);
+        const std::uint32_t self = input_of[u];
+        for (std::uint32_t e = rows[u].start; e < rows[u].start + rows[u].degree; ++e) {
+            const PairKey key = KeyOf(pool[e].cost, self, pool[e].input);
             if (key < b) b = key;
         }
         best[u] = b;
     };
-    for (std::uint32_t i = 0; i < n; ++i) rescan(i);
+    tbb::parallel_for(tbb::blocked_range<std::uint32_t>(0, static_cast<std::uint32_t>(n), 4096),
+                      [&](const tbb::blocked_range<std::uint32_t>& r) {
+                          for (std::uint32_t i = r.begin(); i != r.end(); ++i) rescan(i);
+                      });
     NodeHeap heap(best);
     heap.Build();
     auto entry_of = [&](std::uint32_t w, std::uint32_t id) -> Entry* {
-        for (std::uint32_t e = start[w]; e < start[w] + degree[w]; ++e)
+        for (std::uint32_t e = rows[w].start; e < rows[w].start + rows[w].degree; ++e)
             if (pool[e].id == id) return &pool[e];
         return nullptr;
     };
-    // Sets the cost of pair (u, w) at w's end and repairs w's best pair; `gone` is a node that
-    // may just have left w's list (w's best may have been the pair with it).
+    // Sets the cost of pair (u, w) at w's end and repairs w's best pair; `gone` (an input index)
+    // is a node that may just have left w's list (w's best may have been the pair with it).
     auto set_cost_at = [&](std::uint32_t w, std::uint32_t u, double cost, std::uint32_t gone) {
         Entry* e = entry_of(w, u);
-        SURFEL_CHECK(e != nullptr, "pair " << u << "-" << w << " missing at " << w);
+        SURFEL_CHECK(e != nullptr, "pair " << input_of[u] << "-" << input_of[w] << " missing at " << input_of[w]);
         e->cost = cost;
-        const PairKey key = KeyOf(cost, u, w);
-        const bool was_best = best[w].lo == std::min(u, w) && best[w].hi == std::max(u, w);
+        const PairKey key = KeyOf(cost, input_of[u], input_of[w]);
+        const bool was_best = best[w].lo == key.lo && best[w].hi == key.hi;
         const bool lost_best = gone != kNone && (best[w].lo == gone || best[w].hi == gone);
         if (was_best || lost_best) rescan(w);
         else if (key < best[w]) best[w] = key;
@@ -342,7 +447,8 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
     };
 
     std::vector<char> alive(n, 1);
-    std::vector<std::uint32_t> parent(n), mark(n, 0), merged;
+    std::vector<std::uint32_t> parent(n);
+    std::vector<Entry> merged;  // cost unused
     for (std::uint32_t i = 0; i < n; ++i) parent[i] = i;
     std::uint32_t epoch = 0;
     std::size_t count = n;
@@ -354,26 +460,26 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
         if (best[top].cost == kNever) {
             if (target == 0) break;  // error-bounded: no admissible contraction left
             // Components ran out of pairs before the target: connect the survivors by their k
-            // nearest survivors.
+            // nearest survivors (taken in input order).
             std::vector<Vec3f> live;
             std::vector<std::uint32_t> ids;
-            for (std::uint32_t i = 0; i < n; ++i)
-                if (alive[i]) {
-                    live.push_back(pos[i].cast<float>());
-                    ids.push_back(i);
+            for (std::uint32_t o = 0; o < n; ++o)
+                if (alive[at[o]]) {
+                    live.push_back(pos[at[o]].cast<float>());
+                    ids.push_back(at[o]);
                 }
             const KdTree live_tree(live);
             const KnnTable live_knn = live_tree.KnnAll(std::min<int>(k, static_cast<int>(live.size()) - 1));
             auto append = [&](std::uint32_t u, std::uint32_t v) {
-                if (degree[u] == capacity[u]) {
+                if (rows[u].degree == rows[u].capacity) {
                     const std::uint32_t moved = static_cast<std::uint32_t>(pool.size());
-                    const std::uint32_t cap = std::max<std::uint32_t>(4, 2 * capacity[u]);
+                    const std::uint32_t cap = std::max<std::uint32_t>(4, 2 * rows[u].capacity);
                     pool.resize(moved + cap);
-                    std::copy_n(pool.begin() + start[u], degree[u], pool.begin() + moved);
-                    start[u] = moved;
-                    capacity[u] = cap;
+                    std::copy_n(pool.begin() + rows[u].start, rows[u].degree, pool.begin() + moved);
+                    rows[u].start = moved;
+                    rows[u].capacity = cap;
                 }
-                pool[start[u] + degree[u]++] = {kNever, v};
+                pool[rows[u].start + rows[u].degree++] = {kNever, v, input_of[v]};
             };
             for (std::uint32_t a = 0; a < live.size(); ++a)
                 for (const std::uint32_t b : live_knn.Row(a)) {
@@ -386,9 +492,9 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
                 }
             for (std::uint32_t a = 0; a < live.size(); ++a) {
                 const std::uint32_t u = ids[a];
-                for (std::uint32_t e = start[u]; e < start[u] + degree[u]; ++e) {
+                for (std::uint32_t e = rows[u].start; e < rows[u].start + rows[u].degree; ++e) {
                     const std::uint32_t w = pool[e].id;
-                    if (w > u) {
+                    if (pool[e].input > input_of[u]) {
                         pool[e].cost = cost_of(u, w);
                         entry_of(w, u)->cost = pool[e].cost;
                     }
@@ -401,9 +507,34 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
             if (best[heap.top()].cost == kNever) break;  // nothing left to join (coincident points)
             continue;
         }
-        // Contract the best pair: v (the higher index) into u.
-        const std::uint32_t u = best[top].lo, v = best[top].hi;
+        // Contract the best pair: v (the higher input index) into u.
+        const std::uint32_t u = at[best[top].lo], v = at[best[top].hi];
+        const std::uint32_t v_input = best[top].hi;
+        // The loop waits on memory (each pair touches rows, quadrics and keys scattered over the
+        // pool): ask for all of a contraction's lines at once, in two waves (a list's place, then
+        // the list), while the pair's fit computes.
+        auto prefetch_row = [&](std::uint32_t w) {
+            const Entry* row = pool.data() + rows[w].start;
+            for (std::uint32_t e = 0; e < rows[w].degree; e += 4) __builtin_prefetch(row + e);
+        };
+        prefetch_row(u);
+        prefetch_row(v);
         const PairFit f = fit(u, v);
+        for (const std::uint32_t x : {u, v})
+            for (std::uint32_t e = rows[x].start; e < rows[x].start + rows[x].degree; ++e) {
+                const std::uint32_t w = pool[e].id;
+                __builtin_prefetch(&rows[w]);
+                __builtin_prefetch(&quadric[w]);
+                __builtin_prefetch(reinterpret_cast<const char*>(&quadric[w]) + 64);
+                __builtin_prefetch(&pos[w]);
+                __builtin_prefetch(&best[w]);
+                heap.PrefetchPosition(w);
+            }
+        for (const std::uint32_t x : {u, v})
+            for (std::uint32_t e = rows[x].start; e < rows[x].start + rows[x].degree; ++e) {
+                prefetch_row(pool[e].id);
+                heap.PrefetchSlot(pool[e].id);
+            }
         pos[u] = f.x;
         quadric[u] += quadric[v];
         alive[v] = 0;
@@ -413,37 +544,38 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
         // u's new neighbours: its own and v's, without u and v. v's neighbours now point to u.
         ++epoch;
         merged.clear();
-        mark[u] = mark[v] = epoch;
-        for (std::uint32_t e = start[u]; e < start[u] + degree[u]; ++e)
-            if (mark[pool[e].id] != epoch) {
-                mark[pool[e].id] = epoch;
-                merged.push_back(pool[e].id);
+        rows[u].mark = rows[v].mark = epoch;
+        for (std::uint32_t e = rows[u].start; e < rows[u].start + rows[u].degree; ++e)
+            if (rows[pool[e].id].mark != epoch) {
+                rows[pool[e].id].mark = epoch;
+                merged.push_back(pool[e]);
             }
-        for (std::uint32_t e = start[v]; e < start[v] + degree[v]; ++e) {
+        for (std::uint32_t e = rows[v].start; e < rows[v].start + rows[v].degree; ++e) {
             const std::uint32_t w = pool[e].id;
             if (w == u) continue;
             Entry* at_w = entry_of(w, v);
-            if (mark[w] == epoch) {
-                *at_w = pool[start[w] + --degree[w]];  // w knew both: drop v
+            if (rows[w].mark == epoch) {
+                *at_w = pool[rows[w].start + --rows[w].degree];  // w knew both: drop v
             } else {
                 at_w->id = u;
-                mark[w] = epoch;
-                merged.push_back(w);
+                at_w->input = input_of[u];
+                rows[w].mark = epoch;
+                merged.push_back(pool[e]);
             }
         }
-        degree[v] = 0;
-        if (merged.size() > capacity[u]) {
+        rows[v].degree = 0;
+        if (merged.size() > rows[u].capacity) {
             const std::uint32_t cap = static_cast<std::uint32_t>(merged.size() + merged.size() / 2);
-            start[u] = static_cast<std::uint32_t>(pool.size());
-            capacity[u] = cap;
+            rows[u].start = static_cast<std::uint32_t>(pool.size());
+            rows[u].capacity = cap;
             pool.resize(pool.size() + cap);
         }
-        degree[u] = static_cast<std::uint32_t>(merged.size());
+        rows[u].degree = static_cast<std::uint32_t>(merged.size());
         for (std::size_t j = 0; j < merged.size(); ++j) {
-            const std::uint32_t w = merged[j];
+            const std::uint32_t w = merged[j].id;
             const double cost = cost_of(u, w);
-            pool[start[u] + j] = {cost, w};
-            set_cost_at(w, u, cost, v);
+            pool[rows[u].start + j] = {cost, w, merged[j].input};
+            set_cost_at(w, u, cost, v_input);
         }
         rescan(u);
         heap.Update(u);
@@ -466,15 +598,15 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
             parent[j] = r;
             j = next;
         }
-        out.label[i] = r;
+        out.label[input_of[i]] = r;
     }
     out.count = Compact(out.label);
     positions.assign(out.count, Vec3f::Zero());
-    std::vector<std::uint32_t> rep(out.count, kNone);
-    for (std::uint32_t i = 0; i < n; ++i)
-        if (alive[i]) {
-            positions[out.label[i]] = pos[i].cast<float>();
-            rep[out.label[i]] = i;
+    std::vector<std::uint32_t> rep(out.count, kNone);  // input index of each cluster's survivor
+    for (std::uint32_t o = 0; o < n; ++o)
+        if (alive[at[o]]) {
+            positions[out.label[o]] = pos[at[o]].cast<float>();
+            rep[out.label[o]] = o;
         }
     if (cluster_normals) {
         // Unoriented input normals: each cluster's normal is the sum of its members' normals

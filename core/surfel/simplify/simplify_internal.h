@@ -3,6 +3,8 @@
 
 #include <Eigen/Core>
 #include <Eigen/Eigenvalues>
+#include <algorithm>
+#include <cmath>
 #include <cstdint>
 #include <span>
 #include <vector>
@@ -51,6 +53,66 @@ struct Spread {
     }
 };
 Spread Analyze(const Moments& m);
+
+/// The minimiser of the quadric x^T a x - 2 b^T x (a symmetric, positive semi-definite) by a
+/// truncated pseudo-inverse around `mid`: the eigen-directions whose eigenvalue is at most 1e-3 of
+/// the largest stay at `mid` (iterative simplification, notes 2.2: the tangent directions of a
+/// flat region). When the invariants of `a` prove that every eigenvalue passes (the smallest is at
+/// least det / e2, the largest at most the trace, e2 the sum of the principal 2x2 minors, with a
+/// 1 % margin) the full inverse (adjugate / det) gives the same point without the eigen solve;
+/// when they prove that only the largest passes, its eigenpair alone (found without the solve).
+/// Otherwise (creases: two eigenvalues pass, or too close to the 1e-3 line to tell) Eigen's
+/// direct 3x3 solve. The shortcuts agree with the solve to rounding, not to the bit.
+inline Eigen::Vector3d MinimizeQuadric(const Eigen::Matrix3d& a, const Eigen::Vector3d& b, const Eigen::Vector3d& mid) {
+    const double a00 = a(0, 0), a01 = a(0, 1), a02 = a(0, 2), a11 = a(1, 1), a12 = a(1, 2), a22 = a(2, 2);
+    const double c00 = a11 * a22 - a12 * a12, c01 = a02 * a12 - a01 * a22, c02 = a01 * a12 - a02 * a11;
+    const double c11 = a00 * a22 - a02 * a02, c12 = a01 * a02 - a00 * a12, c22 = a00 * a11 - a01 * a01;
+    const double det = a00 * c00 + a01 * c01 + a02 * c02;
+    const double trace = a00 + a11 + a22, e2 = c00 + c11 + c22;
+    const Eigen::Vector3d g = b - a * mid;
+    if (det > 0 && det > 1.01e-3 * trace * e2) {
+        const double inv = 1.0 / det;
+        return mid + inv * Eigen::Vector3d(c00 * g.x() + c01 * g.y() + c02 * g.z(),
+                                           c01 * g.x() + c11 * g.y() + c12 * g.z(),
+                                           c02 * g.x() + c12 * g.y() + c22 * g.z());
+    }
+    // Only the largest eigenvalue passes when the two others, whose sum s = trace - l3 obeys
+    // l3 s <= e2, are proven at most 1e-3 l3: l3 >= r+ and s <= r- = e2 / r+ for the roots r+-
+    // of l (trace - l) = e2 (l3 >= trace / 3 > r- when e2 < 2 trace^2 / 9), 1 % margin. Then
+    // x = mid + v3 (v3 . g) / l3, l3 by Newton's method on the characteristic polynomial from
+    // the trace down (monotone: the polynomial is increasing and convex beyond its largest root),
+    // v3 the largest cross product of two rows of a - l3 I.
+    if (trace > 0 && e2 < (2.0 / 9.0) * trace * trace) {
+        const double r_plus = 0.5 * (trace + std::sqrt(trace * trace - 4.0 * e2));
+        if (e2 < 0.99e-3 * r_plus * r_plus) {
+            double l3 = trace;
+            for (int it = 0; it < 32; ++it) {
+                const double p = ((l3 - trace) * l3 + e2) * l3 - det;
+                const double dp = (3.0 * l3 - 2.0 * trace) * l3 + e2;
+                if (!(dp > 0)) break;
+                const double next = l3 - p / dp;
+                if (!(next < l3)) break;
+                l3 = next;
+            }
+            const Eigen::Vector3d r0(a00 - l3, a01, a02), r1(a01, a11 - l3, a12), r2(a02, a12, a22 - l3);
+            const Eigen::Vector3d x01 = r0.cross(r1), x02 = r0.cross(r2), x12 = r1.cross(r2);
+            const double n01 = x01.squaredNorm(), n02 = x02.squaredNorm(), n12 = x12.squaredNorm();
+            const Eigen::Vector3d& w = n01 >= n02 && n01 >= n12 ? x01 : (n02 >= n12 ? x02 : x12);
+            const double wn = std::max({n01, n02, n12});
+            if (wn > 0 && l3 > 0) return mid + w * (w.dot(g) / (wn * l3));
+        }
+    }
+    Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> solver;
+    solver.computeDirect(a);
+    const Eigen::Vector3d lambda = solver.eigenvalues();
+    const Eigen::Matrix3d& v = solver.eigenvectors();
+    const double limit = std::max(lambda.maxCoeff(), 0.0) * 1e-3;
+    const Eigen::Vector3d r = v.transpose() * g;
+    Eigen::Vector3d x = mid;
+    for (int i = 0; i < 3; ++i)
+        if (lambda[i] > limit && lambda[i] > 0) x += v.col(i) * (r[i] / lambda[i]);
+    return x;
+}
 
 // Random, the portable generator, comes with the particle engine (surfel/resample/particle_engine.h).
 

@@ -12,6 +12,7 @@
 #include <queue>
 #include <vector>
 
+#include "surfel/simplify/simplify_internal.h"
 #include "surfel/spatial/kd_tree.h"
 
 namespace surfel::reference {
@@ -36,18 +37,8 @@ inline std::vector<Vec3f> IterativeSimplify(std::span<const Vec3f> points, std::
             planes += o.planes;
         }
         double Evaluate(const Eigen::Vector3d& x) const { return std::max(0.0, x.dot(a * x) - 2.0 * b.dot(x) + c); }
-        Eigen::Vector3d Minimize(const Eigen::Vector3d& m) const {
-            Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> solver;
-            solver.computeDirect(a);
-            const Eigen::Vector3d lambda = solver.eigenvalues();
-            const Eigen::Matrix3d& v = solver.eigenvectors();
-            const double limit = std::max(lambda.maxCoeff(), 0.0) * 1e-3;
-            const Eigen::Vector3d r = v.transpose() * (b - a * m);
-            Eigen::Vector3d x = m;
-            for (int i = 0; i < 3; ++i)
-                if (lambda[i] > limit && lambda[i] > 0) x += v.col(i) * (r[i] / lambda[i]);
-            return x;
-        }
+        // The minimiser is the implementation's (its numerics are not what this reference checks).
+        Eigen::Vector3d Minimize(const Eigen::Vector3d& m) const { return detail::MinimizeQuadric(a, b, m); }
     };
     struct Candidate {
         double cost;

@@ -384,6 +384,46 @@ TEST(Simplify, IterativeContractsLikeTheReferenceQueue) {
     }
 }
 
+// The quadric minimiser's two shortcuts (full inverse when every eigenvalue passes, the top
+// eigenpair when only the largest does) give the point of the truncated pseudo-inverse by the
+// eigen solve: quadrics of planes whose normals spread in every direction, around one direction
+// (a flat patch), and around a great circle (a crease: the eigen solve's own case).
+TEST(Simplify, QuadricMinimiserShortcutsMatchTheEigenSolve) {
+    std::mt19937 rng(7);
+    std::normal_distribution<double> gauss(0.0, 1.0);
+    auto reference = [](const Eigen::Matrix3d& a, const Eigen::Vector3d& b, const Eigen::Vector3d& mid) {
+        Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> solver(a);
+        const Eigen::Vector3d lambda = solver.eigenvalues();
+        const Eigen::Matrix3d& v = solver.eigenvectors();
+        const double limit = std::max(lambda.maxCoeff(), 0.0) * 1e-3;
+        const Eigen::Vector3d r = v.transpose() * (b - a * mid);
+        Eigen::Vector3d x = mid;
+        for (int i = 0; i < 3; ++i)
+            if (lambda[i] > limit && lambda[i] > 0) x += v.col(i) * (r[i] / lambda[i]);
+        return x;
+    };
+    for (const double spread : {1.0, 1e-4, 1e-2, -1e-4}) {  // negative: normals around a great circle
+        for (int trial = 0; trial < 200; ++trial) {
+            const Eigen::Vector3d axis = Eigen::Vector3d(gauss(rng), gauss(rng), gauss(rng)).normalized();
+            Eigen::Matrix3d a = Eigen::Matrix3d::Zero();
+            Eigen::Vector3d b = Eigen::Vector3d::Zero();
+            const Eigen::Vector3d centre(gauss(rng), gauss(rng), gauss(rng));
+            for (int plane = 0; plane < 12; ++plane) {
+                Eigen::Vector3d nrm = Eigen::Vector3d(gauss(rng), gauss(rng), gauss(rng));
+                if (spread > 0 && spread < 1) nrm = axis + spread * nrm;
+                if (spread < 0) nrm = nrm - axis * axis.dot(nrm) - spread * gauss(rng) * axis;
+                nrm.normalize();
+                const Eigen::Vector3d p = centre + 0.01 * Eigen::Vector3d(gauss(rng), gauss(rng), gauss(rng));
+                a.noalias() += nrm * nrm.transpose();
+                b += nrm.dot(p) * nrm;
+            }
+            const Eigen::Vector3d mid = centre + 0.01 * Eigen::Vector3d(gauss(rng), gauss(rng), gauss(rng));
+            const Eigen::Vector3d x = detail::MinimizeQuadric(a, b, mid), y = reference(a, b, mid);
+            EXPECT_LT((x - y).norm(), 1e-9 * (1.0 + y.norm())) << "spread " << spread << " trial " << trial;
+        }
+    }
+}
+
 TEST(Simplify, IterativeErrorBound) {
     const PointCloud c = Sphere(10000);
     SimplifyOptions o;
