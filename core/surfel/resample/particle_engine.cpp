@@ -12,6 +12,7 @@
 #include <numbers>
 #include <limits>
 #include <numeric>
+#include <optional>
 #include <thread>
 
 #include "surfel/base/error.h"
@@ -206,26 +207,41 @@ Vec3f ParticleEngine::OntoSurface(Vec3f moved) const {
     return moved;
 }
 
-std::uint32_t ParticleEngine::WalkNearest(const Vec3f& x, std::uint32_t start) const {
+std::uint32_t ParticleEngine::WalkNearest(const Vec3f& x, std::uint32_t start, float* margin) const {
     const std::span<const Vec3f> points = input_.positions;
     std::uint32_t cur = start;
     float best = (points[cur] - x).squaredNorm();
     thread_local std::vector<std::uint32_t> buffer;
     for (;;) {
         std::uint32_t next = cur;
+        float row_min = INFINITY;  // the nearest of cur's graph neighbours
         for (const std::uint32_t j : GraphRow(cur, buffer)) {
             if (j == UINT32_MAX) continue;
             const float d2 = (points[j] - x).squaredNorm();
+            row_min = std::min(row_min, d2);
             if (d2 < best || (d2 == best && j < next)) best = d2, next = j;
         }
-        if (next == cur) return cur;
+        if (next == cur) {
+            // No graph neighbour of cur is nearer than cur by less than this: while x moves by
+            // under half of it, a walk from cur stays at cur (triangle inequality). A relative
+            // 1e-4 of the distances covers the float rounding of the squared distances.
+            if (margin) {
+                const float d_cur = std::sqrt(best), d_row = std::sqrt(row_min);
+                *margin = std::max(0.0f, d_row - d_cur - 1e-4f * (d_row + d_cur));
+            }
+            return cur;
+        }
         cur = next;
     }
 }
 
 Vec3f ParticleEngine::OntoSurface(Vec3f moved, std::uint32_t& home) const {
-    const std::span<const Vec3f> points = input_.positions;
     const std::uint32_t q = home = WalkNearest(moved, home);
+    return OntoPlane(moved, q);
+}
+
+Vec3f ParticleEngine::OntoPlane(Vec3f moved, std::uint32_t q) const {
+    const std::span<const Vec3f> points = input_.positions;
     const Vec3f& nq = Normal(q);
     moved -= (moved - points[q]).dot(nq) * nq;
     const Vec3f off = moved - points[q];  // within reach, as OntoSurface(moved)
@@ -340,6 +356,7 @@ void ParticleEngine::Run(const ParticleParams& params, std::vector<Vec3f>& posit
     std::vector<std::vector<std::uint32_t>> block_nbr;
     std::vector<Vec3f> all;
     if (params.fixed_input) all.resize(m + n);
+    std::optional<UniformGrid> list_grid;  // of the positions at the last build, kept for the fast ones
     for (std::size_t p = 0; p < m; ++p) radius[p] = static_cast<float>(r0 * scale_[home[p]]);
     const float skin = static_cast<float>(kSkin * r0);
     const auto build_lists = [&] {
@@ -354,7 +371,7 @@ void ParticleEngine::Run(const ParticleParams& params, std::vector<Vec3f>& posit
             std::copy(points.begin(), points.end(), all.begin() + static_cast<std::ptrdiff_t>(m));
         }
         const std::span<const Vec3f> pts = params.fixed_input ? std::span<const Vec3f>(all) : std::span<const Vec3f>(positions);
-        const UniformGrid grid(pts, max_list);
+        const UniformGrid& grid = list_grid.emplace(pts, max_list);
         // One query per particle into fixed blocks of kListBlock particles (the blocks, not the
         // threads, fix the layout), then the blocks concatenated in particle order.
         const std::size_t blocks = (m + kListBlock - 1) / kListBlock;
@@ -388,6 +405,8 @@ void ParticleEngine::Run(const ParticleParams& params, std::vector<Vec3f>& posit
     build_lists();
     const auto neighbor = [&](std::uint32_t j) -> const Vec3f& { return j < m ? positions[j] : points[j - m]; };
     std::vector<float> step_len(m);
+    std::vector<float> walk_margin(m, 0.0f);  // of each particle's last walk (0: walk next step)
+    std::vector<Vec3f> walked_at(positions);  // where that walk looked from
     std::vector<std::uint8_t> fast(m, 0);
     std::vector<std::uint32_t> fast_ids, extra_first(m + 1), extra;
     std::vector<std::vector<std::uint32_t>> fast_nbrs;
@@ -399,9 +418,9 @@ void ParticleEngine::Run(const ParticleParams& params, std::vector<Vec3f>& posit
         // The lists hold every neighbour within radius[a] of a particle a for the pairs of
         // "slow" particles, those that moved less than half the smallest slack
         // (list_radius - radius) since the lists were built. The few "fast" ones (a particle
-        // jumping to another sample's tangent plane at a scan's edge) are found on a grid of the
-        // current positions, and their pushes on slow particles scattered to those; when more
-        // than 3 % are fast, every list is rebuilt.
+        // jumping to another sample's tangent plane at a scan's edge) find their neighbours
+        // anew, and their pushes on slow particles are scattered to those; when more than 3 %
+        // are fast, every list is rebuilt.
         float min_slack = INFINITY, max_radius = 0.0f;
         for (std::size_t p = 0; p < m; ++p) {
             min_slack = std::min(min_slack, list_radius[p] - radius[p]);
@@ -410,7 +429,10 @@ void ParticleEngine::Run(const ParticleParams& params, std::vector<Vec3f>& posit
         fast_ids.clear();
         for (std::size_t p = 0; p < m; ++p)
             if (2.0f * moved[p] >= min_slack) fast_ids.push_back(static_cast<std::uint32_t>(p));
-        if (fast_ids.size() * 33 > m || min_slack <= 0.0f) {
+        // A slow particle within max_radius of a fast one now was within max_radius + min_slack / 2
+        // of it at the build (a hair more for rounding), which the lists' grid must reach.
+        const float slow_reach = max_radius + 0.5f * min_slack * 1.001f;
+        if (fast_ids.size() * 33 > m || min_slack <= 0.0f || !(slow_reach <= list_grid->cell())) {
             build_lists();
             fast_ids.clear();
         }
@@ -419,18 +441,24 @@ void ParticleEngine::Run(const ParticleParams& params, std::vector<Vec3f>& posit
         std::fill(extra_first.begin(), extra_first.end(), 0);
         extra.clear();
         if (!fast_ids.empty()) {
-            if (params.fixed_input) std::copy(positions.begin(), positions.end(), all.begin());
-            const std::span<const Vec3f> pts =
-                params.fixed_input ? std::span<const Vec3f>(all) : std::span<const Vec3f>(positions);
-            // Cells of the lists' size (max_radius + skin, not max_radius): at the smaller cell
-            // the grid falls back to its hashed layout, whose build is a sort (3x the cost).
-            const UniformGrid grid(pts, max_radius + skin);
+            // Every particle (and fixed sample) within max_radius of a fast one: the slow ones and
+            // the samples from the lists' grid (positions at the build, within slow_reach),
+            // tested at their current positions; the fast ones from a small grid of theirs.
+            std::vector<Vec3f> fast_positions(fast_ids.size());
+            for (std::size_t k = 0; k < fast_ids.size(); ++k) fast_positions[k] = positions[fast_ids[k]];
+            const UniformGrid fast_grid(fast_positions, max_radius);
+            const float r2 = max_radius * max_radius;
             fast_nbrs.assign(fast_ids.size(), {});
             tbb::parallel_for(tbb::blocked_range<std::size_t>(0, fast_ids.size(), 16), [&](const auto& range) {
                 for (std::size_t k = range.begin(); k != range.end(); ++k) {
                     const std::uint32_t f = fast_ids[k];
-                    grid.ForEachWithin(positions[f], max_radius, [&](std::uint32_t j, const Vec3f&, float) {
-                        if (j != f) fast_nbrs[k].push_back(j);
+                    const Vec3f& xf = positions[f];
+                    list_grid->ForEachWithin(xf, slow_reach, [&](std::uint32_t j, const Vec3f&, float) {
+                        if (j == f || (j < m && fast[j])) return;
+                        if ((neighbor(j) - xf).squaredNorm() <= r2) fast_nbrs[k].push_back(j);
+                    });
+                    fast_grid.ForEachWithin(xf, max_radius, [&](std::uint32_t i, const Vec3f&, float) {
+                        if (fast_ids[i] != f) fast_nbrs[k].push_back(fast_ids[i]);
                     });
                 }
             });
@@ -463,8 +491,11 @@ void ParticleEngine::Run(const ParticleParams& params, std::vector<Vec3f>& posit
                         std::lower_bound(fast_ids.begin(), fast_ids.end(), static_cast<std::uint32_t>(p)) - fast_ids.begin());
                     for (const std::uint32_t j : fast_nbrs[k]) push(j);
                 } else {
-                    for (std::uint32_t k = first[p]; k < first[p + 1]; ++k)
-                        if (nbr[k] >= m || !fast[nbr[k]]) push(nbr[k]);
+                    if (fast_ids.empty())
+                        for (std::uint32_t k = first[p]; k < first[p + 1]; ++k) push(nbr[k]);
+                    else
+                        for (std::uint32_t k = first[p]; k < first[p + 1]; ++k)
+                            if (nbr[k] >= m || !fast[nbr[k]]) push(nbr[k]);
                     for (std::uint32_t k = extra_first[p]; k < extra_first[p + 1]; ++k) push(extra[k]);
                 }
                 // Step: a lone neighbour at distance d moves x by params.gain (r - d).
@@ -472,9 +503,15 @@ void ParticleEngine::Run(const ParticleParams& params, std::vector<Vec3f>& posit
                 const float len = step.norm();
                 const float max_step = static_cast<float>(kMaxStep) * r;
                 if (len > max_step) step *= max_step / len;
-                std::uint32_t h = home[p];
-                next[p] = OntoSurface(x + step, h);
-                home[p] = h;
+                // The closest original point: the last one while the moved point stays within
+                // half the last walk's margin of where that walk ended (the walk would not leave
+                // it), else a new walk from it.
+                const Vec3f y = x + step;
+                if (!(2.0f * (y - walked_at[p]).norm() < walk_margin[p])) {
+                    home[p] = WalkNearest(y, home[p], &walk_margin[p]);
+                    walked_at[p] = y;
+                }
+                next[p] = OntoPlane(y, home[p]);
                 step_len[p] = (next[p] - x).norm();
             }
         });

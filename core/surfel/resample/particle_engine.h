@@ -163,7 +163,13 @@ private:
     // The input point closest to x by a greedy walk over the input's k-nearest-neighbour graph
     // from `start` (a particle moves a fraction of the spacing per step, so its closest sample
     // is its last one or a neighbour of it); ties go to the lower index.
-    std::uint32_t WalkNearest(const Vec3f& x, std::uint32_t start) const;
+    // `margin` (optional): how much nearer than the result its nearest graph neighbour is not
+    // (less a rounding allowance), so that a walk from the result to any point within margin / 2
+    // of x ends where it starts.
+    std::uint32_t WalkNearest(const Vec3f& x, std::uint32_t start, float* margin = nullptr) const;
+    // `moved` onto the tangent plane of input point q, within q's reach (the second half of
+    // OntoSurface).
+    Vec3f OntoPlane(Vec3f moved, std::uint32_t q) const;
 
     const PointCloud& input_;
     std::span<const Vec3f> normals_;
