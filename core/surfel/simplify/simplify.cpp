@@ -6,6 +6,8 @@
 #include <algorithm>
 #include <cmath>
 #include <fstream>
+#include <numbers>
+#include <optional>
 #include <string>
 
 #include "surfel/base/error.h"
@@ -13,6 +15,7 @@
 #include "surfel/simplify/simplify_internal.h"
 #include "surfel/spatial/kd_tree.h"
 #include "surfel/spatial/neighbor_radii.h"
+#include "surfel/spatial/uniform_grid.h"
 #include "surfel/surface/local_analysis.h"
 #include "surfel/surface/poly_fit.h"
 
@@ -294,11 +297,28 @@ SimplifyResult Simplify(const PointCloud& input, const SimplifyOptions& options,
             params.seed = options.seed;
             params.iterations = options.particle_iterations;
             engine.Run(params, positions, particle_normals, tracker);
-            // Clusters for the attributes: each original point belongs to its closest particle.
+            // Clusters for the attributes: each original point belongs to its closest particle
+            // (the lower index on a tie). A grid of the particles with cells of the repulsion
+            // radius r0 finds it exactly wherever one lies within r0 (nearly every point: the
+            // particles cover the surface at about that spacing), the kd-tree elsewhere.
             const KdTree ptree(positions);
+            const float cell = static_cast<float>(
+                2.0 * std::sqrt(engine.WeightedArea() / (std::numbers::pi * static_cast<double>(positions.size()))));
+            const bool use_grid = cell > 0.0f && std::isfinite(cell);
+            const std::optional<UniformGrid> pgrid =
+                use_grid ? std::optional<UniformGrid>(std::in_place, positions, cell) : std::nullopt;
             clusters.label.resize(n);
             tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 4096), [&](const tbb::blocked_range<std::size_t>& r) {
-                for (std::size_t i = r.begin(); i != r.end(); ++i) clusters.label[i] = ptree.Nearest(input.positions[i]).index;
+                for (std::size_t i = r.begin(); i != r.end(); ++i) {
+                    const Vec3f& x = input.positions[i];
+                    float best = INFINITY;
+                    std::uint32_t nearest = UINT32_MAX;
+                    if (pgrid)
+                        pgrid->ForEachWithin(x, cell, [&](std::uint32_t j, const Vec3f&, float d2) {
+                            if (d2 < best || (d2 == best && j < nearest)) best = d2, nearest = j;
+                        });
+                    clusters.label[i] = nearest != UINT32_MAX ? nearest : ptree.Nearest(x).index;
+                }
             });
             clusters.count = positions.size();
             // Normals: the particles' MLS normals. Oriented like given input normals as they
