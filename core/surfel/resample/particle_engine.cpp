@@ -95,16 +95,24 @@ ParticleEngine::ParticleEngine(const PointCloud& input, std::span<const Vec3f> n
     if (shared_knn_) {
         density.radius.resize(n);
         density.density.resize(n);
+        density.spacing.resize(n);
         for (std::size_t i = 0; i < n; ++i) {
             const float r = std::sqrt(shared_knn_->Dist2(i)[density_k - 1]);
             density.radius[i] = r;
             density.density[i] = r > 0 ? static_cast<float>(density_k / (std::numbers::pi * r * r))
                                        : std::numeric_limits<float>::infinity();
+            density.spacing[i] = SpacingFromRadius(r, density_k);
         }
+        std::vector<float> spacing(density.spacing);
+        std::nth_element(spacing.begin(), spacing.begin() + static_cast<std::ptrdiff_t>(n / 2), spacing.end());
+        density.median_spacing = spacing[n / 2];
     } else {
         density = ComputeSamplingDensity(*tree_, density_k);
     }
     reach_radius_ = density.radius;
+    // The final projection's scale as MlsSurface derives it by default (2 x MedianSpacing(tree),
+    // the k = 6 spacing's median over at most 20000 strided points), from this density.
+    mls_h_ = 2.0f * MedianSpacing(density);
 
     // Per original point: the area it represents (1 / rho, notes 2.3.1) and the radius scale. The
     // adaptive variant scales the repulsion radius with the inverse of the variation (2.3.4),
@@ -535,7 +543,9 @@ void ParticleEngine::Run(const ParticleParams& params, std::vector<Vec3f>& posit
     // cached fits: the MLS fit at each original point once (n fits rather than m projections),
     // every particle moved onto the polynomial of its closest original point; where that point
     // has no fit, the particle's own MLS projection.
-    const MlsSurface mls(input_, tree);
+    MlsOptions mls_options;
+    mls_options.h = mls_h_ > 0.0f ? mls_h_ : 0.0f;  // 0 (fewer than 2 distinct points): MlsSurface says so
+    const MlsSurface mls(input_, tree, mls_options);
     MlsSurface::Batch batch;
     std::vector<std::uint32_t> nearest(m);
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, m, 1024), [&](const auto& range) {

@@ -192,6 +192,7 @@ private:
     mutable std::unique_ptr<std::atomic<std::uint8_t>[]> normal_state_;
     double total_ = 0.0;
     float median_radius_ = 0.0f;
+    float mls_h_ = 0.0f;  // the final MLS projection's h (MlsSurface's default, from the density above)
 };
 
 }  // namespace surfel
