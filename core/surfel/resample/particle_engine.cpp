@@ -9,8 +9,8 @@
 
 #include <algorithm>
 #include <cmath>
-#include <numbers>
 #include <limits>
+#include <numbers>
 #include <numeric>
 #include <optional>
 #include <thread>
@@ -35,12 +35,14 @@ constexpr std::size_t kListBlock = 1024;
 std::vector<double> CommonScaleVariation(const KdTree& tree, std::span<const float> variation) {
     const std::size_t n = tree.size();
     SURFEL_CHECK(variation.size() == n && n >= 2, "variation = " << variation.size() << ", n = " << n);
-    return CommonScaleVariation(tree.KnnAll(std::min<int>(kVariationNeighbors, static_cast<int>(n) - 1)), variation);
+    return CommonScaleVariation(
+        tree.KnnAll(std::min<int>(kVariationNeighbors, static_cast<int>(n) - 1)), variation);
 }
 
 std::vector<double> CommonScaleVariation(const KnnTable& knn, std::span<const float> variation) {
     const std::size_t n = knn.size();
-    SURFEL_CHECK(variation.size() == n && n >= 2, "variation = " << variation.size() << ", n = " << n);
+    SURFEL_CHECK(variation.size() == n && n >= 2,
+                 "variation = " << variation.size() << ", n = " << n);
     const int k = std::min<int>(kVariationNeighbors, static_cast<int>(n) - 1);
     SURFEL_CHECK(knn.k >= k, "knn.k = " << knn.k << ", k = " << k);
     // sigma_n / r_n^2: on a smooth surface lambda_0 ~ r_n^4 (curvature)^2 and the tangent
@@ -69,7 +71,8 @@ ParticleEngine::ParticleEngine(const PointCloud& input, std::span<const Vec3f> n
     : ParticleEngine(input, normals, variation, adaptive, Shared{}) {}
 
 ParticleEngine::ParticleEngine(const PointCloud& input, std::span<const Vec3f> normals,
-                               std::span<const float> variation, bool adaptive, const Shared& shared)
+                               std::span<const float> variation, bool adaptive,
+                               const Shared& shared)
     : input_(input), normals_(normals) {
     const std::span<const Vec3f> points = input.positions;
     const std::size_t n = points.size();
@@ -104,7 +107,8 @@ ParticleEngine::ParticleEngine(const PointCloud& input, std::span<const Vec3f> n
             density.spacing[i] = SpacingFromRadius(r, density_k);
         }
         std::vector<float> spacing(density.spacing);
-        std::nth_element(spacing.begin(), spacing.begin() + static_cast<std::ptrdiff_t>(n / 2), spacing.end());
+        std::nth_element(spacing.begin(), spacing.begin() + static_cast<std::ptrdiff_t>(n / 2),
+                         spacing.end());
         density.median_spacing = spacing[n / 2];
     } else {
         density = ComputeSamplingDensity(*tree_, density_k);
@@ -121,8 +125,9 @@ ParticleEngine::ParticleEngine(const PointCloud& input, std::span<const Vec3f> n
     if (adaptive && !variation.empty()) {
         SURFEL_CHECK(variation.size() == n, "variation = " << variation.size() << ", n = " << n);
         const int vk = std::min<int>(kVariationNeighbors, static_cast<int>(n) - 1);
-        const std::vector<double> v = shared_knn_ && shared_knn_->k >= vk ? CommonScaleVariation(*shared_knn_, variation)
-                                                                          : CommonScaleVariation(*tree_, variation);
+        const std::vector<double> v = shared_knn_ && shared_knn_->k >= vk
+                                          ? CommonScaleVariation(*shared_knn_, variation)
+                                          : CommonScaleVariation(*tree_, variation);
         std::vector<double> sorted(v);
         std::nth_element(sorted.begin(), sorted.begin() + static_cast<std::ptrdiff_t>(n / 2), sorted.end());
         const double median = std::max(1e-30, sorted[n / 2]);
@@ -179,21 +184,26 @@ const Vec3f& ParticleEngine::Normal(std::uint32_t i) const {
     return lazy_normals_[i];
 }
 
-std::span<const std::uint32_t> ParticleEngine::GraphRow(std::uint32_t i, std::vector<std::uint32_t>& buffer) const {
+std::span<const std::uint32_t> ParticleEngine::GraphRow(std::uint32_t i,
+                                                        std::vector<std::uint32_t>& buffer) const {
     const std::size_t k = static_cast<std::size_t>(graph_k_);
     if (shared_knn_) return shared_knn_->Row(i).first(k);
     if (!graph_state_ || graph_state_[i].load(std::memory_order_acquire) == 2) return graph_.Row(i);
     // The row KdTree::KnnAll gives: the k + 1 nearest, the point itself taken out.
     thread_local std::vector<Neighbor> near;
     tree_->Knn(input_.positions[i], graph_k_ + 1, &near);
-    const auto self = std::find_if(near.begin(), near.end(), [i](const Neighbor& nb) { return nb.index == i; });
-    if (self != near.end()) near.erase(self);
-    else if (near.size() > k) near.pop_back();
+    const auto self =
+        std::find_if(near.begin(), near.end(), [i](const Neighbor& nb) { return nb.index == i; });
+    if (self != near.end())
+        near.erase(self);
+    else if (near.size() > k)
+        near.pop_back();
     buffer.assign(k, UINT32_MAX);
     for (std::size_t j = 0; j < std::min(k, near.size()); ++j) buffer[j] = near[j].index;
     std::uint8_t expected = 0;
     if (graph_state_[i].compare_exchange_strong(expected, 1, std::memory_order_acq_rel)) {
-        std::copy(buffer.begin(), buffer.end(), graph_.indices.begin() + static_cast<std::ptrdiff_t>(i * k));
+        std::copy(buffer.begin(), buffer.end(),
+                  graph_.indices.begin() + static_cast<std::ptrdiff_t>(i * k));
         graph_state_[i].store(2, std::memory_order_release);
     }
     return buffer;
@@ -215,7 +225,8 @@ Vec3f ParticleEngine::OntoSurface(Vec3f moved) const {
     return moved;
 }
 
-std::uint32_t ParticleEngine::WalkNearest(const Vec3f& x, std::uint32_t start, float* margin) const {
+std::uint32_t ParticleEngine::WalkNearest(const Vec3f& x, std::uint32_t start,
+                                          float* margin) const {
     const std::span<const Vec3f> points = input_.positions;
     std::uint32_t cur = start;
     float best = (points[cur] - x).squaredNorm();
@@ -364,7 +375,8 @@ void ParticleEngine::Run(const ParticleParams& params, std::vector<Vec3f>& posit
     std::vector<std::vector<std::uint32_t>> block_nbr;
     std::vector<Vec3f> all;
     if (params.fixed_input) all.resize(m + n);
-    std::optional<UniformGrid> list_grid;  // of the positions at the last build, kept for the fast ones
+    std::optional<UniformGrid>
+        list_grid;  // of the positions at the last build, kept for the fast ones
     for (std::size_t p = 0; p < m; ++p) radius[p] = static_cast<float>(r0 * scale_[home[p]]);
     const float skin = static_cast<float>(kSkin * r0);
     const auto build_lists = [&] {
@@ -453,7 +465,8 @@ void ParticleEngine::Run(const ParticleParams& params, std::vector<Vec3f>& posit
             // the samples from the lists' grid (positions at the build, within slow_reach),
             // tested at their current positions; the fast ones from a small grid of theirs.
             std::vector<Vec3f> fast_positions(fast_ids.size());
-            for (std::size_t k = 0; k < fast_ids.size(); ++k) fast_positions[k] = positions[fast_ids[k]];
+            for (std::size_t k = 0; k < fast_ids.size(); ++k)
+                fast_positions[k] = positions[fast_ids[k]];
             const UniformGrid fast_grid(fast_positions, max_radius);
             const float r2 = max_radius * max_radius;
             fast_nbrs.assign(fast_ids.size(), {});
@@ -461,13 +474,17 @@ void ParticleEngine::Run(const ParticleParams& params, std::vector<Vec3f>& posit
                 for (std::size_t k = range.begin(); k != range.end(); ++k) {
                     const std::uint32_t f = fast_ids[k];
                     const Vec3f& xf = positions[f];
-                    list_grid->ForEachWithin(xf, slow_reach, [&](std::uint32_t j, const Vec3f&, float) {
-                        if (j == f || (j < m && fast[j])) return;
-                        if ((neighbor(j) - xf).squaredNorm() <= r2) fast_nbrs[k].push_back(j);
-                    });
-                    fast_grid.ForEachWithin(xf, max_radius, [&](std::uint32_t i, const Vec3f&, float) {
-                        if (fast_ids[i] != f) fast_nbrs[k].push_back(fast_ids[i]);
-                    });
+                    list_grid->ForEachWithin(xf, slow_reach,
+                                             [&](std::uint32_t j, const Vec3f&, float) {
+                                                 if (j == f || (j < m && fast[j])) return;
+                                                 if ((neighbor(j) - xf).squaredNorm() <= r2)
+                                                     fast_nbrs[k].push_back(j);
+                                             });
+                    fast_grid.ForEachWithin(xf, max_radius,
+                                            [&](std::uint32_t i, const Vec3f&, float) {
+                                                if (fast_ids[i] != f)
+                                                    fast_nbrs[k].push_back(fast_ids[i]);
+                                            });
                 }
             });
             // Pushes of fast particles on slow ones, grouped by the slow particle (stable: in
@@ -544,7 +561,8 @@ void ParticleEngine::Run(const ParticleParams& params, std::vector<Vec3f>& posit
     // every particle moved onto the polynomial of its closest original point; where that point
     // has no fit, the particle's own MLS projection.
     MlsOptions mls_options;
-    mls_options.h = mls_h_ > 0.0f ? mls_h_ : 0.0f;  // 0 (fewer than 2 distinct points): MlsSurface says so
+    mls_options.h =
+        mls_h_ > 0.0f ? mls_h_ : 0.0f;  // 0 (fewer than 2 distinct points): MlsSurface says so
     const MlsSurface mls(input_, tree, mls_options);
     MlsSurface::Batch batch;
     std::vector<std::uint32_t> nearest(m);

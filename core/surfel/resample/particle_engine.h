@@ -122,8 +122,8 @@ public:
     };
     /// As above, with what `shared` provides; `normals` may be empty (see Shared::lazy_normals),
     /// unless `adaptive`, which needs `variation` (of every point) anyway.
-    ParticleEngine(const PointCloud& input, std::span<const Vec3f> normals, std::span<const float> variation,
-                   bool adaptive, const Shared& shared);
+    ParticleEngine(const PointCloud& input, std::span<const Vec3f> normals,
+                   std::span<const float> variation, bool adaptive, const Shared& shared);
     ~ParticleEngine();
     ParticleEngine(const ParticleEngine&) = delete;
     ParticleEngine& operator=(const ParticleEngine&) = delete;
@@ -150,11 +150,12 @@ public:
     /// The unit normal of input point i (the given one, or its lazy estimate). Thread-safe.
     const Vec3f& Normal(std::uint32_t i) const;
 
-private:
+  private:
     // Row i of the input's kWalkNeighbors-nearest-neighbour graph (UINT32_MAX padding); computed
     // on first use when no table was given. Thread-safe; `buffer` holds a row another thread is
     // still writing.
-    std::span<const std::uint32_t> GraphRow(std::uint32_t i, std::vector<std::uint32_t>& buffer) const;
+    std::span<const std::uint32_t> GraphRow(std::uint32_t i,
+                                            std::vector<std::uint32_t>& buffer) const;
     // A moved particle back onto the sampled surface (2.3.3): the tangent plane of the closest
     // original point, within that point's reach.
     Vec3f OntoSurface(Vec3f moved) const;
@@ -192,7 +193,8 @@ private:
     mutable std::unique_ptr<std::atomic<std::uint8_t>[]> normal_state_;
     double total_ = 0.0;
     float median_radius_ = 0.0f;
-    float mls_h_ = 0.0f;  // the final MLS projection's h (MlsSurface's default, from the density above)
+    float mls_h_ =
+        0.0f;  // the final MLS projection's h (MlsSurface's default, from the density above)
 };
 
 }  // namespace surfel

@@ -179,9 +179,10 @@ std::size_t OutputCount(const ResampleOptions& options, const ParticleEngine& en
 
 // Particle simulation (2.3): the new points; with keep_input the input repels them. The
 // output: kept input points first, then the particles, attributes interpolated from the input.
-void RunParticles(const PointCloud& input, const KdTree& tree, const KnnTable* knn, std::span<const Vec3f> normals,
-                  std::span<const float> variation, const ResampleOptions& options, ProgressTracker& tracker,
-                  PointCloud& out, ResampleReport& report) {
+void RunParticles(const PointCloud& input, const KdTree& tree, const KnnTable* knn,
+                  std::span<const Vec3f> normals, std::span<const float> variation,
+                  const ResampleOptions& options, ProgressTracker& tracker, PointCloud& out,
+                  ResampleReport& report) {
     const std::size_t n = input.size();
     ParticleEngine::Shared shared;
     shared.tree = &tree;
@@ -220,8 +221,9 @@ void RunParticles(const PointCloud& input, const KdTree& tree, const KnnTable* k
 
 // Smoothing (notes 1.3): every input point onto the MLS surface, its attributes kept; the MLS
 // normal turned to agree with the point's own normal; h from the data unless given.
-void RunMls(const PointCloud& input, const KdTree& tree, std::span<const Vec3f> normals, const ResampleOptions& options,
-            ProgressTracker& tracker, PointCloud& out, ResampleReport& report) {
+void RunMls(const PointCloud& input, const KdTree& tree, std::span<const Vec3f> normals,
+            const ResampleOptions& options, ProgressTracker& tracker, PointCloud& out,
+            ResampleReport& report) {
     MlsOptions mo;
     mo.degree = options.mls_degree;
     mo.adaptive = options.adaptive;
@@ -254,7 +256,8 @@ void RunMls(const PointCloud& input, const KdTree& tree, std::span<const Vec3f> 
 // sample whose tangent ellipse is too long along its main axis into two on that axis, relaxing;
 // then a final MLS projection and attributes from the zombies (the input, never moved).
 void RunSplit(const PointCloud& input, const KdTree& input_tree, std::span<const Vec3f> normals,
-              const ResampleOptions& options, ProgressTracker& tracker, PointCloud& out, ResampleReport& report) {
+              const ResampleOptions& options, ProgressTracker& tracker, PointCloud& out,
+              ResampleReport& report) {
     ParticleEngine::Shared shared;
     shared.tree = &input_tree;
     const ParticleEngine engine(input, normals, {}, false, shared);
@@ -442,10 +445,15 @@ ResampleResult Resample(const PointCloud& input, const ResampleOptions& options,
     PointCloud& out = result.cloud;
     switch (options.method) {
         case ResampleMethod::kParticle:
-            RunParticles(input, tree, knn.k ? &knn : nullptr, normals, variation, options, tracker, out, report);
+            RunParticles(input, tree, knn.k ? &knn : nullptr, normals, variation, options, tracker,
+                         out, report);
             break;
-        case ResampleMethod::kMls: RunMls(input, tree, normals, options, tracker, out, report); break;
-        case ResampleMethod::kSplit: RunSplit(input, tree, normals, options, tracker, out, report); break;
+        case ResampleMethod::kMls:
+            RunMls(input, tree, normals, options, tracker, out, report);
+            break;
+        case ResampleMethod::kSplit:
+            RunSplit(input, tree, normals, options, tracker, out, report);
+            break;
     }
 
     // Splat radius: the spacing eta of the output's own sampling density (notes 1.1.1).

@@ -245,7 +245,8 @@ SimplifyResult Simplify(const PointCloud& input, const SimplifyOptions& options,
     // normals, bit for bit): a few thousand particles touch a small part of a large scan.
     const bool lazy_particle_normals =
         options.method == SimplifyMethod::kParticle && !options.adaptive && normals.empty();
-    if (options.method == SimplifyMethod::kParticle) input_tree = std::make_unique<KdTree>(input.positions);
+    if (options.method == SimplifyMethod::kParticle)
+        input_tree = std::make_unique<KdTree>(input.positions);
     if (lazy_particle_normals) {
         report.normals_estimated = true;
     } else if ((needs_input_normals && normals.empty()) ||
@@ -254,7 +255,10 @@ SimplifyResult Simplify(const PointCloud& input, const SimplifyOptions& options,
         const KdTree& tree = *input_tree;
         if (n >= 3) {  // fewer: EstimateNormals names the problem
             // One k-nearest table for the normals, the iterative graph and the particle engine.
-            const int k = options.method == SimplifyMethod::kIterative ? std::max(no.k, std::min<int>(options.neighbors, static_cast<int>(n) - 1)) : no.k;
+            const int k =
+                options.method == SimplifyMethod::kIterative
+                    ? std::max(no.k, std::min<int>(options.neighbors, static_cast<int>(n) - 1))
+                    : no.k;
             input_knn = tree.KnnAll(k);
         }
         NormalResult nr = input_knn.k ? EstimateNormals(tree, input_knn, no) : EstimateNormals(tree, no);
@@ -303,23 +307,30 @@ SimplifyResult Simplify(const PointCloud& input, const SimplifyOptions& options,
             // particles cover the surface at about that spacing), the kd-tree elsewhere.
             const KdTree ptree(positions);
             const float cell = static_cast<float>(
-                2.0 * std::sqrt(engine.WeightedArea() / (std::numbers::pi * static_cast<double>(positions.size()))));
+                2.0 * std::sqrt(engine.WeightedArea() /
+                                (std::numbers::pi * static_cast<double>(positions.size()))));
             const bool use_grid = cell > 0.0f && std::isfinite(cell);
             const std::optional<UniformGrid> pgrid =
-                use_grid ? std::optional<UniformGrid>(std::in_place, positions, cell) : std::nullopt;
+                use_grid ? std::optional<UniformGrid>(std::in_place, positions, cell)
+                         : std::nullopt;
             clusters.label.resize(n);
-            tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 4096), [&](const tbb::blocked_range<std::size_t>& r) {
-                for (std::size_t i = r.begin(); i != r.end(); ++i) {
-                    const Vec3f& x = input.positions[i];
-                    float best = INFINITY;
-                    std::uint32_t nearest = UINT32_MAX;
-                    if (pgrid)
-                        pgrid->ForEachWithin(x, cell, [&](std::uint32_t j, const Vec3f&, float d2) {
-                            if (d2 < best || (d2 == best && j < nearest)) best = d2, nearest = j;
-                        });
-                    clusters.label[i] = nearest != UINT32_MAX ? nearest : ptree.Nearest(x).index;
-                }
-            });
+            tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 4096),
+                              [&](const tbb::blocked_range<std::size_t>& r) {
+                                  for (std::size_t i = r.begin(); i != r.end(); ++i) {
+                                      const Vec3f& x = input.positions[i];
+                                      float best = INFINITY;
+                                      std::uint32_t nearest = UINT32_MAX;
+                                      if (pgrid)
+                                          pgrid->ForEachWithin(
+                                              x, cell,
+                                              [&](std::uint32_t j, const Vec3f&, float d2) {
+                                                  if (d2 < best || (d2 == best && j < nearest))
+                                                      best = d2, nearest = j;
+                                              });
+                                      clusters.label[i] =
+                                          nearest != UINT32_MAX ? nearest : ptree.Nearest(x).index;
+                                  }
+                              });
             clusters.count = positions.size();
             // Normals: the particles' MLS normals. Oriented like given input normals as they
             // are; oriented over the output (BuildFromClusters, as the clusters' own normals)
@@ -330,8 +341,9 @@ SimplifyResult Simplify(const PointCloud& input, const SimplifyOptions& options,
     }
     tracker.Check();
     // Estimated (unoriented) input normals reach the output through the clusters' own normals.
-    const bool unoriented = report.normals_estimated && (options.method == SimplifyMethod::kIterative ||
-                                                         options.method == SimplifyMethod::kParticle);
+    const bool unoriented =
+        report.normals_estimated && (options.method == SimplifyMethod::kIterative ||
+                                     options.method == SimplifyMethod::kParticle);
     result.cloud = BuildFromClusters(input, unoriented ? std::span<const Vec3f>{} : std::span<const Vec3f>(normals),
                                      clusters, positions, options.positions_only, input_tree.get());
     if (!particle_normals.empty() && !options.positions_only &&

@@ -139,7 +139,8 @@ void NormalOptions::Validate() const {
 }
 
 Vec3f NormalAt(std::span<const Vec3f> pts, std::size_t i, std::span<const std::uint32_t> row,
-               std::span<const float> dist2, const NormalOptions& opt, NormalScratch& scratch, float* variation) {
+               std::span<const float> dist2, const NormalOptions& opt, NormalScratch& scratch,
+               float* variation) {
     const int k = static_cast<int>(row.size());
     std::vector<std::uint32_t>& idx = scratch.indices;
     std::vector<float>& w = scratch.weights;
@@ -172,8 +173,8 @@ Vec3f NormalAt(std::span<const Vec3f> pts, std::size_t i, std::span<const std::u
     return normal.cast<float>();
 }
 
-Vec3f EstimateNormalAt(const KdTree& tree, std::size_t i, const NormalOptions& opt, NormalScratch& scratch,
-                       float* variation) {
+Vec3f EstimateNormalAt(const KdTree& tree, std::size_t i, const NormalOptions& opt,
+                       NormalScratch& scratch, float* variation) {
     const std::size_t n = tree.size();
     SURFEL_CHECK(n >= 3 && i < n, "i = " << i << ", n = " << n);
     const int k = std::min<int>(opt.k, static_cast<int>(n) - 1);
@@ -181,9 +182,12 @@ Vec3f EstimateNormalAt(const KdTree& tree, std::size_t i, const NormalOptions& o
     // (or the farthest, where ties hid it).
     std::vector<Neighbor>& buf = scratch.neighbors;
     tree.Knn(tree.points()[i], k + 1, &buf);
-    const auto self = std::find_if(buf.begin(), buf.end(), [i](const Neighbor& nb) { return nb.index == i; });
-    if (self != buf.end()) buf.erase(self);
-    else if (static_cast<int>(buf.size()) > k) buf.pop_back();
+    const auto self =
+        std::find_if(buf.begin(), buf.end(), [i](const Neighbor& nb) { return nb.index == i; });
+    if (self != buf.end())
+        buf.erase(self);
+    else if (static_cast<int>(buf.size()) > k)
+        buf.pop_back();
     scratch.row.assign(k, UINT32_MAX);
     scratch.dist2.assign(k, std::numeric_limits<float>::infinity());
     for (std::size_t j = 0; j < std::min<std::size_t>(buf.size(), k); ++j) {
@@ -215,15 +219,17 @@ NormalResult EstimateNormals(const KdTree& tree, const KnnTable& knn, const Norm
     const auto pts = tree.points();
     ProgressTracker tracker(progress ? ProgressFn([&](double f) { return progress(0.4 + 0.3 * f); }) : ProgressFn{},
                             static_cast<double>(n), "normal estimation");
-    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 2048), [&](const tbb::blocked_range<std::size_t>& r) {
-        NormalScratch scratch;
-        for (std::size_t i = r.begin(); i != r.end(); ++i) {
-            float variation = 0.0f;
-            res.normals[i] = NormalAt(pts, i, knn.Row(i).first(k), knn.Dist2(i).first(k), opt, scratch, &variation);
-            res.surface_variation[i] = variation;
-        }
-        tracker.Advance(static_cast<double>(r.size()));
-    });
+    tbb::parallel_for(
+        tbb::blocked_range<std::size_t>(0, n, 2048), [&](const tbb::blocked_range<std::size_t>& r) {
+            NormalScratch scratch;
+            for (std::size_t i = r.begin(); i != r.end(); ++i) {
+                float variation = 0.0f;
+                res.normals[i] = NormalAt(pts, i, knn.Row(i).first(k), knn.Dist2(i).first(k), opt,
+                                          scratch, &variation);
+                res.surface_variation[i] = variation;
+            }
+            tracker.Advance(static_cast<double>(r.size()));
+        });
     if (opt.orient) {
         const ProgressFn hook = progress ? ProgressFn([&](double f) { return progress(0.7 + 0.3 * f); }) : ProgressFn{};
         const int kk = std::max(1, std::min<int>(opt.orient_k, static_cast<int>(n) - 1));

@@ -132,8 +132,8 @@ Vec3f NormalAt(std::span<const Vec3f> pts, std::size_t i, std::span<const std::u
 /// options) gives it before orientation (the same k = min(options.k, size() - 1) neighbours, the
 /// same arithmetic): for callers that need the tangent planes of a few points of a large cloud.
 /// Needs size() >= 3; options are not validated here.
-Vec3f EstimateNormalAt(const KdTree& tree, std::size_t i, const NormalOptions& options, NormalScratch& scratch,
-                       float* variation = nullptr);
+Vec3f EstimateNormalAt(const KdTree& tree, std::size_t i, const NormalOptions& options,
+                       NormalScratch& scratch, float* variation = nullptr);
 
 /// Consistent orientation (notes 1.2, after Hoppe et al. 1992), outward on closed surfaces.
 ///

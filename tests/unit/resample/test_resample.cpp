@@ -221,7 +221,8 @@ TEST(ParticleEngine, LazyNormalsAndASharedTableChangeNothing) {
     ParticleParams params;
     params.count = 300;
     params.iterations = 30;
-    const auto run = [&](std::span<const Vec3f> normals, const ParticleEngine::Shared& shared, int threads) {
+    const auto run = [&](std::span<const Vec3f> normals, const ParticleEngine::Shared& shared,
+                         int threads) {
         tbb::global_control limit(tbb::global_control::max_allowed_parallelism, threads);
         const ParticleEngine engine(input, normals, {}, false, shared);
         std::vector<Vec3f> positions, normals_out;
@@ -242,7 +243,8 @@ TEST(ParticleEngine, LazyNormalsAndASharedTableChangeNothing) {
     const std::vector<Vec3f> shared = run(nr.normals, table, 4);
     ASSERT_EQ(shared.size(), all.size());
     float worst = 0.0f;
-    for (std::size_t i = 0; i < all.size(); ++i) worst = std::max(worst, (shared[i] - all[i]).norm());
+    for (std::size_t i = 0; i < all.size(); ++i)
+        worst = std::max(worst, (shared[i] - all[i]).norm());
     EXPECT_LT(worst, 1e-5f);
     EXPECT_EQ(run(nr.normals, table, 1), shared);
 }
