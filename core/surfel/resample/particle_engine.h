@@ -5,6 +5,7 @@
 /// repulsion within radius r on a dynamic grid, kept on the surface by projection onto the
 /// tangent plane of the closest original point, and a final MLS projection.
 
+#include <atomic>
 #include <cstdint>
 #include <memory>
 #include <random>
@@ -14,6 +15,7 @@
 #include "surfel/base/point_cloud.h"
 #include "surfel/base/progress.h"
 #include "surfel/spatial/kd_tree.h"
+#include "surfel/surface/local_analysis.h"
 
 namespace surfel {
 
@@ -45,6 +47,9 @@ inline constexpr int kVariationNeighbors = 16;
 /// sampling's uneven r_n would otherwise make sigma_n noisy), then averaged over the point and its
 /// n neighbours. Units 1 / length^2; only ratios matter. Needs variation.size() == tree.size() >= 2.
 std::vector<double> CommonScaleVariation(const KdTree& tree, std::span<const float> variation);
+/// The same from a table the caller has, `knn` = tree.KnnAll(K) with K >= min(kVariationNeighbors,
+/// n - 1) (its first columns; the same result as above).
+std::vector<double> CommonScaleVariation(const KnnTable& knn, std::span<const float> variation);
 
 /// The force constant of eq. 2.2 as a step (ParticleParams::gain), unless a caller sets another.
 inline constexpr double kDefaultParticleGain = 0.3;
@@ -100,6 +105,25 @@ public:
     /// CommonScaleVariation of `variation`); may be empty otherwise. Needs at least 2 points.
     ParticleEngine(const PointCloud& input, std::span<const Vec3f> normals, std::span<const float> variation,
                    bool adaptive);
+
+    /// What a caller that has already analysed the input can share with the engine.
+    struct Shared {
+        /// A kd-tree over input.positions, used instead of building one; must outlive the engine.
+        const KdTree* tree = nullptr;
+        /// tree->KnnAll(K) with K >= min(8, n - 1): the engine's walk graph (its first 8 columns),
+        /// sampling density (the 6th) and, with K >= min(kVariationNeighbors, n - 1), the
+        /// adaptive variation, instead of three more neighbour searches. Needs `tree`.
+        const KnnTable* knn = nullptr;
+        /// With empty `normals`: each input point's unoriented normal is estimated when the
+        /// simulation first needs its tangent plane (EstimateNormalAt with these options: the
+        /// same normal EstimateNormals gives it, bit for bit), so a simplification to a few
+        /// particles analyses only the input points they visit. Needs `tree`.
+        NormalOptions lazy_normals;
+    };
+    /// As above, with what `shared` provides; `normals` may be empty (see Shared::lazy_normals),
+    /// unless `adaptive`, which needs `variation` (of every point) anyway.
+    ParticleEngine(const PointCloud& input, std::span<const Vec3f> normals,
+                   std::span<const float> variation, bool adaptive, const Shared& shared);
     ~ParticleEngine();
     ParticleEngine(const ParticleEngine&) = delete;
     ParticleEngine& operator=(const ParticleEngine&) = delete;
@@ -123,7 +147,15 @@ public:
     /// The kd-tree over the input positions.
     const KdTree& tree() const { return *tree_; }
 
-private:
+    /// The unit normal of input point i (the given one, or its lazy estimate). Thread-safe.
+    const Vec3f& Normal(std::uint32_t i) const;
+
+  private:
+    // Row i of the input's kWalkNeighbors-nearest-neighbour graph (UINT32_MAX padding); computed
+    // on first use when no table was given. Thread-safe; `buffer` holds a row another thread is
+    // still writing.
+    std::span<const std::uint32_t> GraphRow(std::uint32_t i,
+                                            std::vector<std::uint32_t>& buffer) const;
     // A moved particle back onto the sampled surface (2.3.3): the tangent plane of the closest
     // original point, within that point's reach.
     Vec3f OntoSurface(Vec3f moved) const;
@@ -132,18 +164,37 @@ private:
     // The input point closest to x by a greedy walk over the input's k-nearest-neighbour graph
     // from `start` (a particle moves a fraction of the spacing per step, so its closest sample
     // is its last one or a neighbour of it); ties go to the lower index.
-    std::uint32_t WalkNearest(const Vec3f& x, std::uint32_t start) const;
+    // `margin` (optional): how much nearer than the result its nearest graph neighbour is not
+    // (less a rounding allowance), so that a walk from the result to any point within margin / 2
+    // of x ends where it starts.
+    std::uint32_t WalkNearest(const Vec3f& x, std::uint32_t start, float* margin = nullptr) const;
+    // `moved` onto the tangent plane of input point q, within q's reach (the second half of
+    // OntoSurface).
+    Vec3f OntoPlane(Vec3f moved, std::uint32_t q) const;
 
     const PointCloud& input_;
     std::span<const Vec3f> normals_;
-    std::unique_ptr<KdTree> tree_;
+    std::unique_ptr<KdTree> own_tree_;
+    const KdTree* tree_ = nullptr;
     std::vector<float> reach_radius_;  // r_i of the sampling density (distance to the 6th neighbour)
     std::vector<double> scale_;        // repulsion radius scale per input point
     std::vector<double> weight_;       // area / scale^2 per input point
     std::vector<double> area_;         // the (capped) area 1 / rho each input point stands for
-    KnnTable graph_;                   // the input's k-nearest-neighbour graph, for WalkNearest
+    // The input's k-nearest-neighbour graph, for WalkNearest: rows of a shared table (stride
+    // graph_stride_), of its own KnnAll, or filled on first use (graph_state_: 0 empty,
+    // 1 being written, 2 ready).
+    const KnnTable* shared_knn_ = nullptr;
+    mutable KnnTable graph_;
+    int graph_k_ = 0;
+    mutable std::unique_ptr<std::atomic<std::uint8_t>[]> graph_state_;
+    // Lazily estimated normals (empty when given), with the same three states.
+    NormalOptions lazy_options_;
+    mutable std::vector<Vec3f> lazy_normals_;
+    mutable std::unique_ptr<std::atomic<std::uint8_t>[]> normal_state_;
     double total_ = 0.0;
     float median_radius_ = 0.0f;
+    float mls_h_ =
+        0.0f;  // the final MLS projection's h (MlsSurface's default, from the density above)
 };
 
 }  // namespace surfel

@@ -179,10 +179,15 @@ std::size_t OutputCount(const ResampleOptions& options, const ParticleEngine& en
 
 // Particle simulation (2.3): the new points; with keep_input the input repels them. The
 // output: kept input points first, then the particles, attributes interpolated from the input.
-void RunParticles(const PointCloud& input, std::span<const Vec3f> normals, std::span<const float> variation,
-                  const ResampleOptions& options, ProgressTracker& tracker, PointCloud& out, ResampleReport& report) {
+void RunParticles(const PointCloud& input, const KdTree& tree, const KnnTable* knn,
+                  std::span<const Vec3f> normals, std::span<const float> variation,
+                  const ResampleOptions& options, ProgressTracker& tracker, PointCloud& out,
+                  ResampleReport& report) {
     const std::size_t n = input.size();
-    const ParticleEngine engine(input, normals, variation, options.adaptive);
+    ParticleEngine::Shared shared;
+    shared.tree = &tree;
+    shared.knn = knn;
+    const ParticleEngine engine(input, normals, variation, options.adaptive, shared);
     const std::size_t count = OutputCount(options, engine, n);
     ParticleParams params;
     params.seed = options.seed;
@@ -216,9 +221,9 @@ void RunParticles(const PointCloud& input, std::span<const Vec3f> normals, std::
 
 // Smoothing (notes 1.3): every input point onto the MLS surface, its attributes kept; the MLS
 // normal turned to agree with the point's own normal; h from the data unless given.
-void RunMls(const PointCloud& input, std::span<const Vec3f> normals, const ResampleOptions& options,
-            ProgressTracker& tracker, PointCloud& out, ResampleReport& report) {
-    const KdTree tree(input.positions);
+void RunMls(const PointCloud& input, const KdTree& tree, std::span<const Vec3f> normals,
+            const ResampleOptions& options, ProgressTracker& tracker, PointCloud& out,
+            ResampleReport& report) {
     MlsOptions mo;
     mo.degree = options.mls_degree;
     mo.adaptive = options.adaptive;
@@ -250,9 +255,12 @@ void RunMls(const PointCloud& input, std::span<const Vec3f> normals, const Resam
 // Dynamic sampling (notes 3.2.2-3.2.3): rounds of measuring the local spacing, splitting every
 // sample whose tangent ellipse is too long along its main axis into two on that axis, relaxing;
 // then a final MLS projection and attributes from the zombies (the input, never moved).
-void RunSplit(const PointCloud& input, std::span<const Vec3f> normals, const ResampleOptions& options,
-              ProgressTracker& tracker, PointCloud& out, ResampleReport& report) {
-    const ParticleEngine engine(input, normals, {}, false);
+void RunSplit(const PointCloud& input, const KdTree& input_tree, std::span<const Vec3f> normals,
+              const ResampleOptions& options, ProgressTracker& tracker, PointCloud& out,
+              ResampleReport& report) {
+    ParticleEngine::Shared shared;
+    shared.tree = &input_tree;
+    const ParticleEngine engine(input, normals, {}, false, shared);
     const double area = engine.WeightedArea();
     double s = options.spacing;
     if (s == 0) s = std::sqrt(area / (std::sqrt(3.0) / 2.0 * static_cast<double>(options.target)));
@@ -412,15 +420,20 @@ ResampleResult Resample(const PointCloud& input, const ResampleOptions& options,
     const Stopwatch clock;
 
     // Oriented normals (notes 1.2) and, for the adaptive variant, the surface variation.
+    // One kd-tree over the input for every method; where the normals are estimated, one
+    // k = 16 table for them, their orientation graph and the particle engine (walk graph,
+    // sampling density, adaptive variation).
+    const KdTree tree(input.positions);
+    KnnTable knn;
     std::vector<Vec3f> normals = input.normals;
     std::vector<float> variation;
     if (normals.empty() || (options.adaptive && options.method == ResampleMethod::kParticle)) {
-        const KdTree tree(input.positions);
         NormalOptions no;
         no.k = std::min<int>(16, static_cast<int>(n) - 1);
         no.orient_k = std::min<int>(10, static_cast<int>(n) - 1);
         no.orient = normals.empty();
-        NormalResult nr = EstimateNormals(tree, no);
+        knn = tree.KnnAll(no.k);
+        NormalResult nr = EstimateNormals(tree, knn, no);
         if (normals.empty()) {
             normals = std::move(nr.normals);
             report.normals_estimated = true;
@@ -431,9 +444,16 @@ ResampleResult Resample(const PointCloud& input, const ResampleOptions& options,
 
     PointCloud& out = result.cloud;
     switch (options.method) {
-        case ResampleMethod::kParticle: RunParticles(input, normals, variation, options, tracker, out, report); break;
-        case ResampleMethod::kMls: RunMls(input, normals, options, tracker, out, report); break;
-        case ResampleMethod::kSplit: RunSplit(input, normals, options, tracker, out, report); break;
+        case ResampleMethod::kParticle:
+            RunParticles(input, tree, knn.k ? &knn : nullptr, normals, variation, options, tracker,
+                         out, report);
+            break;
+        case ResampleMethod::kMls:
+            RunMls(input, tree, normals, options, tracker, out, report);
+            break;
+        case ResampleMethod::kSplit:
+            RunSplit(input, tree, normals, options, tracker, out, report);
+            break;
     }
 
     // Splat radius: the spacing eta of the output's own sampling density (notes 1.1.1).

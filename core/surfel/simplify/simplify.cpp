@@ -7,6 +7,8 @@
 #include <cmath>
 #include <fstream>
 #include <limits>
+#include <numbers>
+#include <optional>
 #include <string>
 
 #include "surfel/base/error.h"
@@ -14,6 +16,7 @@
 #include "surfel/simplify/simplify_internal.h"
 #include "surfel/spatial/kd_tree.h"
 #include "surfel/spatial/neighbor_radii.h"
+#include "surfel/spatial/uniform_grid.h"
 #include "surfel/surface/local_analysis.h"
 #include "surfel/surface/poly_fit.h"
 
@@ -249,20 +252,35 @@ SimplifyResult Simplify(const PointCloud& input, const SimplifyOptions& options,
     std::vector<float> variation;
     std::unique_ptr<KdTree> input_tree;  // built for the input normals, kept for the attributes
     KnnTable input_knn;  // iterative: the k = 16 neighbours of the normals also give its graph
-    if ((needs_input_normals && normals.empty()) ||
-        (options.method == SimplifyMethod::kParticle && options.adaptive)) {
+    NormalOptions no;
+    no.k = std::min<int>(16, static_cast<int>(n) - 1);
+    no.orient_k = std::min<int>(10, static_cast<int>(n) - 1);
+    // Neither method needs oriented input normals: the particles only tangent planes (2.3.3),
+    // the quadrics of iterative contraction hold n n^T, d n and d^2, the same for -n. The
+    // output normals are oriented afterwards, over the m output points instead of the n
+    // input points.
+    no.orient = false;
+    // The particle simulation without the adaptive variant's variation (of every point) leaves
+    // its engine to estimate the normals of the input points its particles visit (the same
+    // normals, bit for bit): a few thousand particles touch a small part of a large scan.
+    const bool lazy_particle_normals =
+        options.method == SimplifyMethod::kParticle && !options.adaptive && normals.empty();
+    if (options.method == SimplifyMethod::kParticle)
         input_tree = std::make_unique<KdTree>(input.positions);
+    if (lazy_particle_normals) {
+        report.normals_estimated = true;
+    } else if ((needs_input_normals && normals.empty()) ||
+               (options.method == SimplifyMethod::kParticle && options.adaptive)) {
+        if (!input_tree) input_tree = std::make_unique<KdTree>(input.positions);
         const KdTree& tree = *input_tree;
-        NormalOptions no;
-        no.k = std::min<int>(16, static_cast<int>(n) - 1);
-        no.orient_k = std::min<int>(10, static_cast<int>(n) - 1);
-        // Neither method needs oriented input normals: the particles only tangent planes (2.3.3),
-        // the quadrics of iterative contraction hold n n^T, d n and d^2, the same for -n. The
-        // output normals are oriented afterwards, over the m output points instead of the n
-        // input points.
-        no.orient = false;
-        if (options.method == SimplifyMethod::kIterative && n >= 3)  // fewer: EstimateNormals names the problem
-            input_knn = tree.KnnAll(std::max(no.k, std::min<int>(options.neighbors, static_cast<int>(n) - 1)));
+        if (n >= 3) {  // fewer: EstimateNormals names the problem
+            // One k-nearest table for the normals, the iterative graph and the particle engine.
+            const int k =
+                options.method == SimplifyMethod::kIterative
+                    ? std::max(no.k, std::min<int>(options.neighbors, static_cast<int>(n) - 1))
+                    : no.k;
+            input_knn = tree.KnnAll(k);
+        }
         NormalResult nr = input_knn.k ? EstimateNormals(tree, input_knn, no) : EstimateNormals(tree, no);
         if (normals.empty()) {
             normals = std::move(nr.normals);
@@ -291,36 +309,66 @@ SimplifyResult Simplify(const PointCloud& input, const SimplifyOptions& options,
                                                        report.normals_estimated, options, positions, tracker);
             break;
         case SimplifyMethod::kParticle: {
-            // Particle simulation (2.3) by the resample module's engine.
-            const ParticleEngine engine(input, normals, variation, options.adaptive);
+            // Particle simulation (2.3) by the resample module's engine, over the input's tree
+            // (and k-nearest table, when the normals were estimated here).
+            ParticleEngine::Shared shared;
+            shared.tree = input_tree.get();
+            if (input_knn.k) shared.knn = &input_knn;
+            shared.lazy_normals = no;
+            const ParticleEngine engine(input, normals, variation, options.adaptive, shared);
             ParticleParams params;
             params.count = options.target;
             params.seed = options.seed;
             params.iterations = options.particle_iterations;
             engine.Run(params, positions, particle_normals, tracker);
-            // Clusters for the attributes: each original point belongs to its closest particle.
+            // Clusters for the attributes: each original point belongs to its closest particle
+            // (the lower index on a tie). A grid of the particles with cells of the repulsion
+            // radius r0 finds it exactly wherever one lies within r0 (nearly every point: the
+            // particles cover the surface at about that spacing), the kd-tree elsewhere.
             const KdTree ptree(positions);
+            const float cell = static_cast<float>(
+                2.0 * std::sqrt(engine.WeightedArea() /
+                                (std::numbers::pi * static_cast<double>(positions.size()))));
+            const bool use_grid = cell > 0.0f && std::isfinite(cell);
+            const std::optional<UniformGrid> pgrid =
+                use_grid ? std::optional<UniformGrid>(std::in_place, positions, cell)
+                         : std::nullopt;
             clusters.label.resize(n);
-            tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 4096), [&](const tbb::blocked_range<std::size_t>& r) {
-                for (std::size_t i = r.begin(); i != r.end(); ++i) clusters.label[i] = ptree.Nearest(input.positions[i]).index;
-            });
+            tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 4096),
+                              [&](const tbb::blocked_range<std::size_t>& r) {
+                                  for (std::size_t i = r.begin(); i != r.end(); ++i) {
+                                      const Vec3f& x = input.positions[i];
+                                      float best = INFINITY;
+                                      std::uint32_t nearest = UINT32_MAX;
+                                      if (pgrid)
+                                          pgrid->ForEachWithin(
+                                              x, cell,
+                                              [&](std::uint32_t j, const Vec3f&, float d2) {
+                                                  if (d2 < best || (d2 == best && j < nearest))
+                                                      best = d2, nearest = j;
+                                              });
+                                      clusters.label[i] =
+                                          nearest != UINT32_MAX ? nearest : ptree.Nearest(x).index;
+                                  }
+                              });
             clusters.count = positions.size();
+            // Normals: the particles' MLS normals. Oriented like given input normals as they
+            // are; oriented over the output (BuildFromClusters, as the clusters' own normals)
+            // where the input normals were estimated without a sign.
+            if (report.normals_estimated) clusters.normals = particle_normals;
             break;
         }
     }
     tracker.Check();
     // Estimated (unoriented) input normals reach the output through the clusters' own normals.
-    const bool unoriented = report.normals_estimated && options.method == SimplifyMethod::kIterative;
+    const bool unoriented =
+        report.normals_estimated && (options.method == SimplifyMethod::kIterative ||
+                                     options.method == SimplifyMethod::kParticle);
     result.cloud = BuildFromClusters(input, unoriented ? std::span<const Vec3f>{} : std::span<const Vec3f>(normals),
                                      clusters, positions, options.positions_only, input_tree.get());
-    if (!particle_normals.empty() && !options.positions_only) {
+    if (!particle_normals.empty() && !options.positions_only &&
+        (!report.normals_estimated || result.cloud.size() < 3)) {
         result.cloud.normals = particle_normals;  // the MLS normals at the projected positions
-        if (report.normals_estimated && result.cloud.size() >= 3) {  // input normals unoriented: orient these
-            const KdTree ptree(result.cloud.positions);
-            NormalOptions no;
-            no.orient_k = std::min<int>(10, static_cast<int>(result.cloud.size()) - 1);
-            OrientNormals(ptree, result.cloud.normals, no);
-        }
         // Radii were measured in the planes of the member-averaged normals; close enough, and
         // the nearest-neighbour floor still holds.
     }

@@ -138,6 +138,65 @@ void NormalOptions::Validate() const {
     CheckRange("orient_crossing_weight", orient_crossing_weight, 0.0, kMaxOrientCrossingWeight);
 }
 
+Vec3f NormalAt(std::span<const Vec3f> pts, std::size_t i, std::span<const std::uint32_t> row,
+               std::span<const float> dist2, const NormalOptions& opt, NormalScratch& scratch,
+               float* variation) {
+    const int k = static_cast<int>(row.size());
+    std::vector<std::uint32_t>& idx = scratch.indices;
+    std::vector<float>& w = scratch.weights;
+    idx.resize(k + 1);
+    w.resize(k + 1);
+    idx[0] = static_cast<std::uint32_t>(i);
+    std::copy_n(row.begin(), k, idx.begin() + 1);
+    std::span<const float> weights;
+    if (opt.weighted) {
+        const float kth = std::sqrt(dist2[k - 1]);
+        const float h = opt.h > 0 ? opt.h : std::max(kth * 0.5f, 1e-30f);
+        w[0] = 1.0f;
+        for (int j = 0; j < k; ++j) w[j + 1] = std::exp(-dist2[j] / (h * h));
+        weights = w;
+    }
+    const CovarianceFrame f = AnalyzeNeighborhood(pts, idx, weights);
+    Vec3d normal = f.normal;
+    if (opt.refine && k >= 6) {
+        const Vec3d p = pts[i].cast<double>();
+        const LocalFrame frame = LocalFrame::FromNormal(p, f.normal);
+        PolyFit fit(2, std::max(std::sqrt(double(dist2[k - 1])), 1e-30));
+        for (int j = 0; j <= k; ++j) {
+            const Vec3d l = frame.ToLocal(pts[idx[j]].cast<double>());
+            fit.Add(l.x(), l.y(), l.z(), weights.empty() ? 1.0 : weights[j]);
+        }
+        PolyCoeffs g;
+        if (fit.Solve(&g)) normal = frame.NormalAt(g, 0.0, 0.0);
+    }
+    if (variation) *variation = static_cast<float>(f.SurfaceVariation());
+    return normal.cast<float>();
+}
+
+Vec3f EstimateNormalAt(const KdTree& tree, std::size_t i, const NormalOptions& opt,
+                       NormalScratch& scratch, float* variation) {
+    const std::size_t n = tree.size();
+    SURFEL_CHECK(n >= 3 && i < n, "i = " << i << ", n = " << n);
+    const int k = std::min<int>(opt.k, static_cast<int>(n) - 1);
+    // The row KdTree::KnnAll(k) gives point i: its k + 1 nearest, the point itself taken out
+    // (or the farthest, where ties hid it).
+    std::vector<Neighbor>& buf = scratch.neighbors;
+    tree.Knn(tree.points()[i], k + 1, &buf);
+    const auto self =
+        std::find_if(buf.begin(), buf.end(), [i](const Neighbor& nb) { return nb.index == i; });
+    if (self != buf.end())
+        buf.erase(self);
+    else if (static_cast<int>(buf.size()) > k)
+        buf.pop_back();
+    scratch.row.assign(k, UINT32_MAX);
+    scratch.dist2.assign(k, std::numeric_limits<float>::infinity());
+    for (std::size_t j = 0; j < std::min<std::size_t>(buf.size(), k); ++j) {
+        scratch.row[j] = buf[j].index;
+        scratch.dist2[j] = buf[j].dist2;
+    }
+    return NormalAt(tree.points(), i, scratch.row, scratch.dist2, opt, scratch, variation);
+}
+
 NormalResult EstimateNormals(const KdTree& tree, const NormalOptions& opt, const ProgressFn& progress) {
     opt.Validate();
     const std::size_t n = tree.size();
@@ -160,38 +219,17 @@ NormalResult EstimateNormals(const KdTree& tree, const KnnTable& knn, const Norm
     const auto pts = tree.points();
     ProgressTracker tracker(progress ? ProgressFn([&](double f) { return progress(0.4 + 0.3 * f); }) : ProgressFn{},
                             static_cast<double>(n), "normal estimation");
-    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 2048), [&](const tbb::blocked_range<std::size_t>& r) {
-        std::vector<std::uint32_t> idx(k + 1);
-        std::vector<float> w(k + 1);
-        for (std::size_t i = r.begin(); i != r.end(); ++i) {
-            idx[0] = static_cast<std::uint32_t>(i);
-            std::copy_n(knn.Row(i).begin(), k, idx.begin() + 1);
-            std::span<const float> weights;
-            if (opt.weighted) {
-                const float kth = std::sqrt(knn.Dist2(i)[k - 1]);
-                const float h = opt.h > 0 ? opt.h : std::max(kth * 0.5f, 1e-30f);
-                w[0] = 1.0f;
-                for (int j = 0; j < k; ++j) w[j + 1] = std::exp(-knn.Dist2(i)[j] / (h * h));
-                weights = w;
+    tbb::parallel_for(
+        tbb::blocked_range<std::size_t>(0, n, 2048), [&](const tbb::blocked_range<std::size_t>& r) {
+            NormalScratch scratch;
+            for (std::size_t i = r.begin(); i != r.end(); ++i) {
+                float variation = 0.0f;
+                res.normals[i] = NormalAt(pts, i, knn.Row(i).first(k), knn.Dist2(i).first(k), opt,
+                                          scratch, &variation);
+                res.surface_variation[i] = variation;
             }
-            const CovarianceFrame f = AnalyzeNeighborhood(pts, idx, weights);
-            Vec3d normal = f.normal;
-            if (opt.refine && k >= 6) {
-                const Vec3d p = pts[i].cast<double>();
-                const LocalFrame frame = LocalFrame::FromNormal(p, f.normal);
-                PolyFit fit(2, std::max(std::sqrt(double(knn.Dist2(i)[k - 1])), 1e-30));
-                for (int j = 0; j <= k; ++j) {
-                    const Vec3d l = frame.ToLocal(pts[idx[j]].cast<double>());
-                    fit.Add(l.x(), l.y(), l.z(), weights.empty() ? 1.0 : weights[j]);
-                }
-                PolyCoeffs g;
-                if (fit.Solve(&g)) normal = frame.NormalAt(g, 0.0, 0.0);
-            }
-            res.normals[i] = normal.cast<float>();
-            res.surface_variation[i] = static_cast<float>(f.SurfaceVariation());
-        }
-        tracker.Advance(static_cast<double>(r.size()));
-    });
+            tracker.Advance(static_cast<double>(r.size()));
+        });
     if (opt.orient) {
         const ProgressFn hook = progress ? ProgressFn([&](double f) { return progress(0.7 + 0.3 * f); }) : ProgressFn{};
         const int kk = std::max(1, std::min<int>(opt.orient_k, static_cast<int>(n) - 1));

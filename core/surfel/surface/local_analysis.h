@@ -114,6 +114,27 @@ NormalResult EstimateNormals(const KdTree& tree, const NormalOptions& options = 
 NormalResult EstimateNormals(const KdTree& tree, const KnnTable& knn, const NormalOptions& options,
                              const ProgressFn& progress = {});
 
+/// Reusable buffers of NormalAt / EstimateNormalAt (one per thread).
+struct NormalScratch {
+    std::vector<std::uint32_t> indices, row;
+    std::vector<float> weights, dist2;
+    std::vector<Neighbor> neighbors;
+};
+
+/// The unoriented normal EstimateNormals gives point i of `pts` from its neighbours `row`
+/// (nearest first, UINT32_MAX padding allowed) at squared distances `dist2`: covariance analysis
+/// (notes 1.2) and, with options.refine and at least 6 neighbours, the quadratic refinement.
+/// `variation` (optional) receives sigma_n. options.k is not read (the row's length is k).
+Vec3f NormalAt(std::span<const Vec3f> pts, std::size_t i, std::span<const std::uint32_t> row,
+               std::span<const float> dist2, const NormalOptions& options, NormalScratch& scratch,
+               float* variation = nullptr);
+/// The unoriented normal of the tree's point i alone, bit for bit the one EstimateNormals(tree,
+/// options) gives it before orientation (the same k = min(options.k, size() - 1) neighbours, the
+/// same arithmetic): for callers that need the tangent planes of a few points of a large cloud.
+/// Needs size() >= 3; options are not validated here.
+Vec3f EstimateNormalAt(const KdTree& tree, std::size_t i, const NormalOptions& options,
+                       NormalScratch& scratch, float* variation = nullptr);
+
 /// Consistent orientation (notes 1.2, after Hoppe et al. 1992), outward on closed surfaces.
 ///
 /// Propagation: per connected component of the symmetric options.orient_k-neighbour graph, a

@@ -6,7 +6,9 @@
 
 #include "surfel/base/error.h"
 #include "surfel/base/shapes.h"
+#include "surfel/resample/particle_engine.h"
 #include "surfel/resample/resample.h"
+#include "surfel/surface/local_analysis.h"
 
 namespace surfel {
 namespace {
@@ -199,6 +201,52 @@ TEST(Resample, SameOutputWhateverTheThreadCount) {
         EXPECT_EQ(one.cloud.radii, many.cloud.radii);
         EXPECT_EQ(one.report.iterations, many.report.iterations);
     }
+}
+
+// The engine's shared set-up: lazily estimated normals (a particle simplification's few
+// particles over a large scan) give the same particles, bit for bit, as every normal estimated
+// first; the caller's k-nearest table (graph, density, variation) gives the same particles as
+// the engine's own searches on an input without distance ties; both whatever the thread count.
+TEST(ParticleEngine, LazyNormalsAndASharedTableChangeNothing) {
+    ShapeOptions so;
+    so.points = 3000;
+    so.noise = 0.001;
+    const PointCloud input = SampleShape(Shape::kTorus, so);
+    const KdTree tree(input.positions);
+    NormalOptions no;
+    no.k = 16;
+    no.orient = false;
+    const KnnTable knn = tree.KnnAll(16);
+    const NormalResult nr = EstimateNormals(tree, knn, no);
+    ParticleParams params;
+    params.count = 300;
+    params.iterations = 30;
+    const auto run = [&](std::span<const Vec3f> normals, const ParticleEngine::Shared& shared,
+                         int threads) {
+        tbb::global_control limit(tbb::global_control::max_allowed_parallelism, threads);
+        const ParticleEngine engine(input, normals, {}, false, shared);
+        std::vector<Vec3f> positions, normals_out;
+        ProgressTracker progress({}, 1.0, "test");
+        engine.Run(params, positions, normals_out, progress);
+        positions.insert(positions.end(), normals_out.begin(), normals_out.end());
+        return positions;
+    };
+    const std::vector<Vec3f> all = run(nr.normals, {}, 4);
+    ParticleEngine::Shared lazy;
+    lazy.tree = &tree;
+    lazy.lazy_normals = no;
+    EXPECT_EQ(run({}, lazy, 1), all);
+    EXPECT_EQ(run({}, lazy, 4), all);
+    ParticleEngine::Shared table;
+    table.tree = &tree;
+    table.knn = &knn;
+    const std::vector<Vec3f> shared = run(nr.normals, table, 4);
+    ASSERT_EQ(shared.size(), all.size());
+    float worst = 0.0f;
+    for (std::size_t i = 0; i < all.size(); ++i)
+        worst = std::max(worst, (shared[i] - all[i]).norm());
+    EXPECT_LT(worst, 1e-5f);
+    EXPECT_EQ(run(nr.normals, table, 1), shared);
 }
 
 // The interpolation filter is a linear fit in the tangent plane: for an attribute linear in

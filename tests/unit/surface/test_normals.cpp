@@ -72,6 +72,31 @@ TEST(Normals, SurfaceVariationZeroOnPlaneAndPositiveOnSphere) {
     for (float v : rs.surface_variation) ASSERT_GT(v, 1e-5f);
 }
 
+TEST(Normals, OnePointAtATimeIsBitForBitTheBatch) {
+    // EstimateNormalAt (the particle engine's lazy normals) against EstimateNormals unoriented,
+    // plain and weighted, on a torus with noise (uneven neighbourhoods) and a tiny cloud.
+    ShapeOptions o;
+    o.points = 4000;
+    o.noise = 0.002;
+    for (const std::size_t points : {std::size_t{4000}, std::size_t{9}}) {
+        o.points = points;
+        const KdTree tree(SampleShape(Shape::kTorus, o).positions);
+        for (const bool weighted : {false, true}) {
+            NormalOptions no;
+            no.orient = false;
+            no.weighted = weighted;
+            const NormalResult batch = EstimateNormals(tree, no);
+            NormalScratch scratch;
+            for (std::size_t i = 0; i < tree.size(); ++i) {
+                float variation = -1.0f;
+                const Vec3f one = EstimateNormalAt(tree, i, no, scratch, &variation);
+                ASSERT_EQ(one, batch.normals[i]) << i << (weighted ? " weighted" : " plain");
+                ASSERT_EQ(variation, batch.surface_variation[i]) << i;
+            }
+        }
+    }
+}
+
 TEST(Density, SpacingOfARegularGrid) {
     std::vector<Vec3f> pts;
     for (int i = 0; i < 50; ++i)
