@@ -361,13 +361,12 @@ WeightedMoments GatherWeighted(const Impl& im, const Vec3f& o, float cutoff, std
     if (im.scale.empty()) im.kernels->gauss_weights(nb.d2.data(), static_cast<float>(1.0 / (double(opt.h) * double(opt.h))), nb.w.data(), nb.size());
     else nb.WeightsPerPoint(im.inv_h2.data(), cutoff * cutoff);
     if (ball >= 0 && !im.weight_normals.empty()) {
+        // w_j *= exp(-c^2), c = (1 - n_j . n_ball) / sigma, through the kernels (fit_kernels.h).
+        static_assert(sizeof(Vec3f) == 3 * sizeof(float));
         const Vec3f nr = im.weight_normals[std::size_t(ball)];
-        const float inv = 1.0f / opt.normal_sigma;
-        const std::size_t n = nb.size();
-        for (std::size_t j = 0; j < n; ++j) {
-            const float c = (1.0f - im.weight_normals[nb.index[j]].dot(nr)) * inv;
-            nb.w[j] *= std::exp(-c * c);
-        }
+        const float ref[3] = {nr.x(), nr.y(), nr.z()};
+        im.kernels->normal_factors(im.weight_normals.front().data(), im.weight_normals.size(), nb.index.data(),
+                                   nb.size(), ref, 1.0f / opt.normal_sigma, nb.w.data());
     }
     double m[10];
     im.kernels->moments(nb.x.data(), nb.y.data(), nb.z.data(), nb.w.data(), nb.size(), m);
@@ -394,7 +393,10 @@ bool AaSurface::FitAt(const Vec3d& r, Fit* fit, float cutoff, bool attributes, s
     fit->frame = LocalFrame::FromNormal(rf.cast<double>(), es.eigenvectors().col(0));
     fit->mean = rf.cast<double>() + Vec3d(wm.x, wm.y, wm.z) / wm.w;
     // Step 2, polynomial: minimise sum (a_i(x_j, y_j) - f_j)^2 theta_j (eq. 10).
-    nb.ToLocal(Vec3d::Zero(), fit->frame.u, fit->frame.v, fit->frame.n);
+    const double frame[12] = {0, 0, 0, fit->frame.u.x(), fit->frame.u.y(), fit->frame.u.z(),
+                              fit->frame.v.x(), fit->frame.v.y(), fit->frame.v.z(),
+                              fit->frame.n.x(), fit->frame.n.y(), fit->frame.n.z()};
+    impl_->kernels->to_local(nb.x.data(), nb.y.data(), nb.z.data(), m, frame, nb.lx.data(), nb.ly.data(), nb.lz.data());
     PolyFit pf(o.degree, o.h);
     double sums[21];
     impl_->kernels->poly_sums(nb.lx.data(), nb.ly.data(), nb.lz.data(), nb.w.data(), m, pf.inv_h(), sums);

@@ -16,6 +16,7 @@
 /// SURFEL_FIT_KERNELS=baseline picks the baseline build on any CPU.
 
 #include <cstddef>
+#include <cstdint>
 
 namespace surfel::fit_kernels {
 
@@ -43,6 +44,15 @@ using SquaredDistancesAroundFn = void (*)(const float* x, const float* y, const 
 using ToLocalFn = void (*)(const float* x, const float* y, const float* z, std::size_t n, const double* frame,
                            double* lx, double* ly, double* lz);
 
+/// The normal-aware weights (AaOptions::normal_sigma): w[j] *= exp(-c^2), c = (1 - n . ref) * inv,
+/// n = normals[3 index[j] .. 3 index[j] + 2] (a point's normal, x y z), in float, the dot as
+/// Eigen's x + (y + z), exp as the C library's expf. The AVX2 build computes eight at once with
+/// glibc's expf algorithm (the FMA variant glibc itself runs on such a CPU) and is chosen only
+/// where it reproduces this process's expf to the bit (NormalFactorsExact); elsewhere each
+/// factor calls expf. `n_points` (the cloud's size) bounds the indices.
+using NormalFactorsFn = void (*)(const float* normals, std::size_t n_points, const std::uint32_t* index,
+                                 std::size_t n, const float* ref, float inv, float* w);
+
 struct Kernels {
     MomentsFn moments;
     PolySumsFn poly_sums;
@@ -50,6 +60,7 @@ struct Kernels {
     GaussWeightsFn gauss_weights;
     SquaredDistancesAroundFn squared_distances_around;
     ToLocalFn to_local;
+    NormalFactorsFn normal_factors;
     const char* isa;  ///< "avx2" or "baseline"
 };
 
@@ -57,5 +68,8 @@ struct Kernels {
 const Kernels& Best();
 /// The baseline build (any x86-64).
 const Kernels& Baseline();
+/// Whether Best().normal_factors is the eight-wide one (AVX2, FMA, and its exp agreed with
+/// expf on a probe of arguments when the kernels were chosen).
+bool NormalFactorsVectorised();
 
 }  // namespace surfel::fit_kernels

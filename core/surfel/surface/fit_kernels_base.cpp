@@ -20,30 +20,41 @@ void SquaredDistancesAround(const float* x, const float* y, const float* z, std:
                             double cz, float* out);
 void ToLocal(const float* x, const float* y, const float* z, std::size_t n, const double* f, double* lx, double* ly,
              double* lz);
+void NormalFactors(const float* N, std::size_t n_points, const std::uint32_t* index, std::size_t n, const float* ref,
+                   float inv, float* w);
+void NormalFactorsFma(const float* N, std::size_t n_points, const std::uint32_t* index, std::size_t n,
+                      const float* ref, float inv, float* w);
+bool ExpMatchesLibm();
 }  // namespace avx2
 
 const Kernels& Baseline() {
     static const Kernels k{&baseline::Moments, &baseline::PolySums, &baseline::SquaredDistances,
                            &baseline::GaussWeights, &baseline::SquaredDistancesAround, &baseline::ToLocal,
-                           "baseline"};
+                           &baseline::NormalFactors, "baseline"};
     return k;
 }
 
 const Kernels& Best() {
     static const Kernels& best = []() -> const Kernels& {
-        static const Kernels k{&avx2::Moments,      &avx2::PolySums,
-                               &avx2::SquaredDistances, &avx2::GaussWeights,
-                               &avx2::SquaredDistancesAround, &avx2::ToLocal,
-                               "avx2"};
+        static Kernels k{&avx2::Moments,      &avx2::PolySums,
+                         &avx2::SquaredDistances, &avx2::GaussWeights,
+                         &avx2::SquaredDistancesAround, &avx2::ToLocal,
+                         &avx2::NormalFactors, "avx2"};
         const char* force = std::getenv("SURFEL_FIT_KERNELS");
         if (force && std::strcmp(force, "baseline") == 0) return Baseline();
 #if defined(__x86_64__) || defined(__i386__)
         __builtin_cpu_init();
-        if (__builtin_cpu_supports("avx2")) return k;
+        if (__builtin_cpu_supports("avx2")) {
+            // The eight-wide exp only where it is this process's expf to the bit.
+            if (__builtin_cpu_supports("fma") && avx2::ExpMatchesLibm()) k.normal_factors = &avx2::NormalFactorsFma;
+            return k;
+        }
 #endif
         return Baseline();
     }();
     return best;
 }
+
+bool NormalFactorsVectorised() { return Best().normal_factors == &avx2::NormalFactorsFma; }
 
 }  // namespace surfel::fit_kernels

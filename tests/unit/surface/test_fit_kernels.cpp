@@ -4,6 +4,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <cstring>
 #include <random>
 #include <string>
 #include <vector>
@@ -110,6 +111,44 @@ TEST(FitKernels, ElementwiseKernelsGiveNeighborBatchsBits) {
             }
         }
     }
+}
+
+// The normal-aware weight factors: every build gives, to the bit, what the scalar formula of
+// AaSurface's fits gives with std::exp (Eigen's float dot, expf), on unit normals at every angle
+// to the reference (c^2 up to (2 / sigma)^2) and on sizes below, at and above the vector width;
+// with sigma = 0.05 the arguments leave expf's fast path (|x| >= 88) and the lanes fall back.
+TEST(FitKernels, NormalFactorsAreExpfToTheBit) {
+    std::mt19937 rng(29);
+    std::normal_distribution<float> g(0.0f, 1.0f);
+    const std::size_t points = 4000;
+    std::vector<Vec3f> normals(points);
+    for (Vec3f& n : normals) n = Vec3f(g(rng), g(rng), g(rng)).normalized();
+    normals[7] = Vec3f(std::nanf(""), 0, 0);  // a NaN lane takes the slow path too
+    std::uniform_int_distribution<std::uint32_t> pick(0, points - 1);
+    const Vec3f ref = Vec3f(0.3f, -0.5f, 0.8f).normalized();
+    const float r[3] = {ref.x(), ref.y(), ref.z()};
+    for (const float sigma : {0.5f, 0.25f, 1.0f, 0.05f})
+        for (const std::size_t n : {std::size_t(0), std::size_t(5), std::size_t(8), std::size_t(110), std::size_t(3001)}) {
+            std::vector<std::uint32_t> index(n);
+            for (auto& i : index) i = pick(rng);
+            if (n > 3) index[3] = 7;
+            std::vector<float> w0(n);
+            for (auto& w : w0) w = std::abs(g(rng));
+            const float inv = 1.0f / sigma;
+            std::vector<float> want = w0;
+            for (std::size_t j = 0; j < n; ++j) {
+                const float c = (1.0f - normals[index[j]].dot(ref)) * inv;
+                want[j] *= std::exp(-c * c);
+            }
+            for (const fit_kernels::Kernels* k : {&fit_kernels::Baseline(), &fit_kernels::Best()}) {
+                std::vector<float> w = w0;
+                k->normal_factors(normals.front().data(), points, index.data(), n, r, inv, w.data());
+                for (std::size_t j = 0; j < n; ++j)  // (a NaN's sign depends on the operand order)
+                    ASSERT_TRUE(std::memcmp(&w[j], &want[j], sizeof(float)) == 0 || (std::isnan(w[j]) && std::isnan(want[j])))
+                        << k->isa << " sigma " << sigma << " j = " << j << ": " << w[j] << " vs " << want[j];
+            }
+        }
+    RecordProperty("normal_factors_vectorised", fit_kernels::NormalFactorsVectorised() ? "yes" : "no");
 }
 
 }  // namespace
