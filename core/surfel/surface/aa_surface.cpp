@@ -4,6 +4,9 @@
 #include <algorithm>
 #include <cmath>
 #include <vector>
+#include <string>
+#include <cstdio>
+#include <cstdlib>
 
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
@@ -62,6 +65,20 @@ struct AaSurface::Impl {
 
 namespace {
 thread_local NeighborBatch tls_batch;
+
+// A point rounded to float (the gathers' origin), and that float point widened back to double.
+// The rounding goes through memory the compiler cannot see into: GCC 12 (Debian 12's, from -O2)
+// may fold a vectorised (double)(float)x back to x (see CenterFit), and whether it does depended
+// on how much of the gather was inlined into FitAt, which moved 40 % of an image's pixels by up
+// to 2e-5 when the gather's loops moved into fit_kernels.
+Vec3f RoundToFloat(const Vec3d& r) {
+    volatile float v[3] = {static_cast<float>(r.x()), static_cast<float>(r.y()), static_cast<float>(r.z())};
+    return Vec3f(float(v[0]), float(v[1]), float(v[2]));
+}
+Vec3d Widen(const Vec3f& f) {
+    volatile float v[3] = {f.x(), f.y(), f.z()};
+    return Vec3d(double(v[0]), double(v[1]), double(v[2]));
+}
 
 // Ids of AaSurface objects (an address can be reused by a later surface; an id is not).
 std::atomic<std::uint64_t> next_surface_id{1};
@@ -254,8 +271,6 @@ struct Superset {
     float reach = 0.0f;
     std::vector<float> x, y, z;
     std::vector<std::uint32_t> index;
-    std::vector<float> d2;            // scratch: squared distances to the current gather's origin
-    std::vector<std::uint32_t> keep;  // scratch: positions of the accepted points
     std::size_t n = 0;
 };
 thread_local Superset tls_superset;
@@ -308,35 +323,14 @@ void Gather(const UniformGrid& grid, std::uint64_t owner, const Vec3f& o, float 
         // Covered when |o - c| + radius <= reach, less a hair for the rounding of these floats.
         const auto covers = [&] { return s.owner == owner && (o - s.c).norm() + radius <= s.reach * (1.0f - 1e-4f); };
         if (!covers()) FillSuperset(grid, owner, o, radius + kSupersetMargin * static_cast<float>(h), s);
-        // Three passes: the squared distances (vectorised), the accepted positions (a
-        // branch-free compaction), then the accepted offsets. d2 is Eigen's squaredNorm of the
-        // float offset, x^2 + (y^2 + z^2), as PushWithin computes it, so the test and the
-        // stored values are PushWithin's to the bit.
+        // The candidates within `radius` of o, their float offsets and distances: d2 is Eigen's
+        // squaredNorm of the float offset, x^2 + (y^2 + z^2), as PushWithin computes it, so the
+        // test and the stored values are PushWithin's to the bit (fit_kernels.h's GatherWithin).
         const std::size_t m = s.n;
-        if (s.d2.size() < m) s.d2.resize(s.index.size()), s.keep.resize(s.index.size());
-        const float r2 = radius * radius;
-        const float ox = o.x(), oy = o.y(), oz = o.z();
-        const float *SX = s.x.data(), *SY = s.y.data(), *SZ = s.z.data();
-        float* SD = s.d2.data();
-        kernels.squared_distances(SX, SY, SZ, m, ox, oy, oz, SD);
-        std::uint32_t* K = s.keep.data();
-        std::size_t n = 0;
-        for (std::size_t j = 0; j < m; ++j) {
-            K[n] = static_cast<std::uint32_t>(j);
-            n += SD[j] <= r2 ? 1 : 0;
-        }
-        nb.Reserve(n);
-        const std::uint32_t* SI = s.index.data();
-        float *X = nb.x.data(), *Y = nb.y.data(), *Z = nb.z.data(), *D = nb.d2.data();
-        std::uint32_t* I = nb.index.data();
-        for (std::size_t k = 0; k < n; ++k) {
-            const std::uint32_t j = K[k];
-            X[k] = SX[j] - ox;
-            Y[k] = SY[j] - oy;
-            Z[k] = SZ[j] - oz;
-            D[k] = SD[j];
-            I[k] = SI[j];
-        }
+        nb.Reserve(m + 8);
+        const std::size_t n =
+            kernels.gather_within(s.x.data(), s.y.data(), s.z.data(), s.index.data(), m, o.x(), o.y(), o.z(),
+                                  radius * radius, nb.x.data(), nb.y.data(), nb.z.data(), nb.d2.data(), nb.index.data());
         nb.Resize(n);
     } else {
         grid.ForEachCandidateRun(o, radius, [&](std::uint32_t first, std::uint32_t last) {
@@ -382,7 +376,7 @@ bool AaSurface::FitAt(const Vec3d& r, Fit* fit, float cutoff, bool attributes, s
     fit->valid = false;
     // Step 1, support plane: B = sum theta_j (p_j - r)(p_j - r)^T (eq. 8, 9), about r rounded to
     // float (within 1e-7 relative of r; the frame's origin is that point).
-    const Vec3f rf = r.cast<float>();
+    const Vec3f rf = RoundToFloat(r);
     const WeightedMoments wm = GatherWeighted(*impl_, rf, cutoff, ball, nb);
     if (!(wm.w > 1e-12)) return false;
     const std::size_t m = nb.size();
@@ -390,8 +384,8 @@ bool AaSurface::FitAt(const Vec3d& r, Fit* fit, float cutoff, bool attributes, s
     es.computeDirect(wm.Second());
     const Vec3d lambda = es.eigenvalues();
     if (!(lambda[0] < o.normal_ratio * lambda[1])) return false;  // normal not well defined
-    fit->frame = LocalFrame::FromNormal(rf.cast<double>(), es.eigenvectors().col(0));
-    fit->mean = rf.cast<double>() + Vec3d(wm.x, wm.y, wm.z) / wm.w;
+    fit->frame = LocalFrame::FromNormal(Widen(rf), es.eigenvectors().col(0));
+    fit->mean = Widen(rf) + Vec3d(wm.x, wm.y, wm.z) / wm.w;
     // Step 2, polynomial: minimise sum (a_i(x_j, y_j) - f_j)^2 theta_j (eq. 10).
     const double frame[12] = {0, 0, 0, fit->frame.u.x(), fit->frame.u.y(), fit->frame.u.z(),
                               fit->frame.v.x(), fit->frame.v.y(), fit->frame.v.z(),
@@ -402,6 +396,11 @@ bool AaSurface::FitAt(const Vec3d& r, Fit* fit, float cutoff, bool attributes, s
     impl_->kernels->poly_sums(nb.lx.data(), nb.ly.data(), nb.lz.data(), nb.w.data(), m, pf.inv_h(), sums);
     pf.AddSums(sums);
     if (!pf.Solve(&fit->g)) return false;
+    if (static FILE* dbgf = getenv("SURFEL_FITLOG") ? fopen(getenv("SURFEL_FITLOG"), "w") : nullptr; dbgf) {
+        double sx = 0, sy = 0, sz = 0, sw = 0, lx = 0, ly = 0, lz = 0; unsigned long long si = 0;
+        for (std::size_t j = 0; j < m; ++j) { sx += nb.x[j]; sy += nb.y[j]; sz += nb.z[j]; sw += nb.w[j]; si = si * 31 + nb.index[j]; lx += nb.lx[j]; ly += nb.ly[j]; lz += nb.lz[j]; }
+        fprintf(dbgf, "%a %a %a %zu | %a %a %a %a %llu | %a %a %a | %a %a %a %a %a %a | %a %a %a\n", r.x(), r.y(), r.z(), m, sx, sy, sz, sw, si, lx, ly, lz, fit->g.c[0], fit->g.c[1], fit->g.c[2], fit->g.c[3], fit->g.c[4], fit->g.c[5], fit->frame.n.x(), fit->frame.n.y(), fit->frame.n.z());
+    }
     fit->valid = true;
     if (!attributes) return true;
     fit->normal_ref = WeightedNormal(cloud, nb);
@@ -422,12 +421,12 @@ AaEvaluation AaSurface::Evaluate(const Vec3d& x) const {
     AaEvaluation ev;
     NeighborBatch& nb = tls_batch;
     // eq. 1-4: the weighted mean a(x) and the covariances in directions through x.
-    const Vec3f xf = x.cast<float>();
+    const Vec3f xf = RoundToFloat(x);
     const WeightedMoments wm = GatherWeighted(*impl_, xf, o.cutoff, -1, nb);
     if (!(wm.w > 1e-12)) return ev;
     Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es;
     es.computeDirect(wm.Second());
-    ev.a = xf.cast<double>() + Vec3d(wm.x, wm.y, wm.z) / wm.w;
+    ev.a = Widen(xf) + Vec3d(wm.x, wm.y, wm.z) / wm.w;
     ev.n = es.eigenvectors().col(0).normalized();
     if (WeightedNormal(impl_->cloud, nb).dot(ev.n) < 0) ev.n = -ev.n;
     ev.f = ev.n.dot(ev.a - x);
@@ -486,6 +485,8 @@ std::optional<AaHit> AaSurface::IntersectInBall(std::uint32_t ball, const Vec3d&
     const double rho = impl_->ball_radius[ball];
     const double rho2 = rho * rho * (1.0 + 1e-9);
     auto inside = [&](double t) { return t >= tmin && t <= tmax && (o + t * d - center).squaredNorm() <= rho2; };
+    if (static FILE* dbgb = getenv("SURFEL_FITLOG") ? fopen((std::string(getenv("SURFEL_FITLOG")) + ".b").c_str(), "w") : nullptr; dbgb)
+        fprintf(dbgb, "%u %a %a %a %a %a %a %a %a %a\n", ball, o.x(), o.y(), o.z(), d.x(), d.y(), d.z(), tmin, tmax, known_hit);
 
     // r_0: the ray against the ball centre's polynomial (section 5), cached per ball.
     // The same-sheet test below, decided before the centre fit: any root in [tmin, tmax] would

@@ -53,6 +53,15 @@ using ToLocalFn = void (*)(const float* x, const float* y, const float* z, std::
 using NormalFactorsFn = void (*)(const float* normals, std::size_t n_points, const std::uint32_t* index,
                                  std::size_t n, const float* ref, float inv, float* w);
 
+/// The neighbours of a gather among candidates: for each j with d2 = |(X, Y, Z)[j] - o|^2 <= r2
+/// (float, as SquaredDistances), in order, appends the offset (X, Y, Z)[j] - o to (out_x, out_y, out_z),
+/// d2 to out_d2 and I[j] to out_i; returns how many. The outputs need room for n + 8 entries (the
+/// AVX2 build stores eight at a time). Data movement after elementwise arithmetic: the same
+/// bits in both builds.
+using GatherWithinFn = std::size_t (*)(const float* X, const float* Y, const float* Z, const std::uint32_t* I,
+                                       std::size_t n, float ox, float oy, float oz, float r2, float* out_x,
+                                       float* out_y, float* out_z, float* out_d2, std::uint32_t* out_i);
+
 struct Kernels {
     MomentsFn moments;
     PolySumsFn poly_sums;
@@ -61,6 +70,7 @@ struct Kernels {
     SquaredDistancesAroundFn squared_distances_around;
     ToLocalFn to_local;
     NormalFactorsFn normal_factors;
+    GatherWithinFn gather_within;
     const char* isa;  ///< "avx2" or "baseline"
 };
 

@@ -62,7 +62,47 @@ __attribute__((target("avx2,fma"))) inline __m256 Exp8(__m256 a) {
     return _mm256_set_m128(hi, lo);
 }
 
+// The lanes of a left-pack: for each 8-bit mask, the positions of its set bits, in order.
+struct PackTable {
+    alignas(32) std::int32_t lanes[256][8];
+    constexpr PackTable() : lanes{} {
+        for (int m = 0; m < 256; ++m) {
+            int k = 0;
+            for (int l = 0; l < 8; ++l)
+                if (m & (1 << l)) lanes[m][k++] = l;
+            for (; k < 8; ++k) lanes[m][k] = 0;
+        }
+    }
+};
+constexpr PackTable kPack;
+
 }  // namespace
+
+// GatherWithin eight candidates at a time: the distances as SquaredDistances, then the accepted
+// lanes packed to the front (a permutation from kPack) and stored eight wide.
+std::size_t GatherWithinPacked(const float* X, const float* Y, const float* Z, const std::uint32_t* I, std::size_t n,
+                               float ox, float oy, float oz, float r2, float* OX, float* OY, float* OZ, float* OD,
+                               std::uint32_t* OI) {
+    const __m256 vx = _mm256_set1_ps(ox), vy = _mm256_set1_ps(oy), vz = _mm256_set1_ps(oz), vr = _mm256_set1_ps(r2);
+    std::size_t j = 0, k = 0;
+    for (; j + 8 <= n; j += 8) {
+        const __m256 ex = _mm256_sub_ps(_mm256_loadu_ps(X + j), vx);
+        const __m256 ey = _mm256_sub_ps(_mm256_loadu_ps(Y + j), vy);
+        const __m256 ez = _mm256_sub_ps(_mm256_loadu_ps(Z + j), vz);
+        const __m256 d2 = _mm256_add_ps(_mm256_mul_ps(ex, ex), _mm256_add_ps(_mm256_mul_ps(ey, ey), _mm256_mul_ps(ez, ez)));
+        const int mask = _mm256_movemask_ps(_mm256_cmp_ps(d2, vr, _CMP_LE_OQ));
+        if (mask == 0) continue;
+        const __m256i p = _mm256_load_si256(reinterpret_cast<const __m256i*>(kPack.lanes[mask]));
+        _mm256_storeu_ps(OX + k, _mm256_permutevar8x32_ps(ex, p));
+        _mm256_storeu_ps(OY + k, _mm256_permutevar8x32_ps(ey, p));
+        _mm256_storeu_ps(OZ + k, _mm256_permutevar8x32_ps(ez, p));
+        _mm256_storeu_ps(OD + k, _mm256_permutevar8x32_ps(d2, p));
+        const __m256i idx = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(I + j));
+        _mm256_storeu_si256(reinterpret_cast<__m256i*>(OI + k), _mm256_permutevar8x32_epi32(idx, p));
+        k += static_cast<std::size_t>(__builtin_popcount(static_cast<unsigned>(mask)));
+    }
+    return k + GatherWithin(X + j, Y + j, Z + j, I + j, n - j, ox, oy, oz, r2, OX + k, OY + k, OZ + k, OD + k, OI + k);
+}
 
 // NormalFactors eight at a time (the same operations in the same order, exp as Exp8).
 __attribute__((target("avx2,fma"))) void NormalFactorsFma(const float* N, std::size_t n_points,

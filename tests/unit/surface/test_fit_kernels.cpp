@@ -151,5 +151,41 @@ TEST(FitKernels, NormalFactorsAreExpfToTheBit) {
     RecordProperty("normal_factors_vectorised", fit_kernels::NormalFactorsVectorised() ? "yes" : "no");
 }
 
+// The gather's filter: both builds keep the same candidates, in order, with the offsets and
+// distances of NeighborBatch::PushWithin (the float test of the grid walk) to the bit.
+TEST(FitKernels, GatherWithinIsPushWithinToTheBit) {
+    std::mt19937 rng(41);
+    std::uniform_real_distribution<float> pos(-0.01f, 0.01f);
+    for (const std::size_t n : {std::size_t(0), std::size_t(3), std::size_t(8), std::size_t(9), std::size_t(261),
+                                std::size_t(2000)}) {
+        std::vector<Vec3f> pts(n);
+        std::vector<std::uint32_t> idx(n);
+        std::vector<float> X(n), Y(n), Z(n);
+        for (std::size_t j = 0; j < n; ++j) {
+            pts[j] = Vec3f(pos(rng), pos(rng), pos(rng));
+            X[j] = pts[j].x(), Y[j] = pts[j].y(), Z[j] = pts[j].z();
+            idx[j] = std::uint32_t(7 * j + 3);
+        }
+        const Vec3f o(0.001f, -0.002f, 0.0005f);
+        const float r2 = 0.006f * 0.006f;
+        NeighborBatch want;
+        want.PushWithin(pts.data(), idx.data(), n, o, r2);
+        for (const fit_kernels::Kernels* k : {&fit_kernels::Baseline(), &fit_kernels::Best()}) {
+            std::vector<float> ox(n + 8), oy(n + 8), oz(n + 8), od(n + 8);
+            std::vector<std::uint32_t> oi(n + 8);
+            const std::size_t m = k->gather_within(X.data(), Y.data(), Z.data(), idx.data(), n, o.x(), o.y(), o.z(), r2,
+                                                   ox.data(), oy.data(), oz.data(), od.data(), oi.data());
+            ASSERT_EQ(m, want.size()) << k->isa << " n = " << n;
+            for (std::size_t j = 0; j < m; ++j) {
+                ASSERT_EQ(ox[j], want.x[j]) << k->isa << " j = " << j;
+                ASSERT_EQ(oy[j], want.y[j]) << k->isa << " j = " << j;
+                ASSERT_EQ(oz[j], want.z[j]) << k->isa << " j = " << j;
+                ASSERT_EQ(od[j], want.d2[j]) << k->isa << " j = " << j;
+                ASSERT_EQ(oi[j], want.index[j]) << k->isa << " j = " << j;
+            }
+        }
+    }
+}
+
 }  // namespace
 }  // namespace surfel
