@@ -55,6 +55,8 @@ struct AaSurface::Impl {
     float max_scale = 0.0f;
     std::vector<Vec3f> weight_normals;  // normal-aware weights (normal_sigma > 0)
     std::unique_ptr<UniformGrid> grid;
+    // The grid's cell-sorted points as structure of arrays (dense grids: the superset's fill).
+    std::vector<float> sorted_x, sorted_y, sorted_z;
     std::vector<CenterEntry> centers;
     // 0 empty, 1 being computed, 2 ready, 3 ready but undefined (no fit at that centre).
     std::unique_ptr<std::atomic<std::uint8_t>[]> center_state;
@@ -200,6 +202,13 @@ AaSurface::AaSurface(const PointCloud& cloud, const AaOptions& options, const Pr
             }
         });
     }
+    if (impl_->grid->dense()) {
+        const std::size_t n = cloud.size();
+        const Vec3f* p = impl_->grid->sorted_points();
+        for (auto* v : {&impl_->sorted_x, &impl_->sorted_y, &impl_->sorted_z}) v->resize(n);
+        for (std::size_t i = 0; i < n; ++i)
+            impl_->sorted_x[i] = p[i].x(), impl_->sorted_y[i] = p[i].y(), impl_->sorted_z[i] = p[i].z();
+    }
     if (o.boundary > 0) {
         const float med = density.median_spacing > 0 ? density.median_spacing : 1.0f;
         impl_->relative_spacing.resize(cloud.size());
@@ -278,33 +287,24 @@ thread_local Superset tls_superset;
 // How far (in units of h) the superset reaches beyond the gather that filled it.
 constexpr float kSupersetMargin = 1.0f;
 
-// Fills `s` with the points within `reach` of c, in ascending cell order (dense grid only).
-void FillSuperset(const UniformGrid& grid, std::uint64_t owner, const Vec3f& c, float reach, Superset& s) {
+// Fills `s` with the points within `reach` of c, in ascending cell order (dense grid only; `sorted`:
+// the grid's sorted points as x, y, z arrays), eight candidates at a time (SelectWithin).
+void FillSuperset(const UniformGrid& grid, const float* const sorted[3], const fit_kernels::Kernels& kernels,
+                  std::uint64_t owner, const Vec3f& c, float reach, Superset& s) {
     s.owner = 0;
     s.n = 0;
     const float r2 = reach * reach;
-    const Vec3f* pts = grid.sorted_points();
     const std::uint32_t* idx = grid.sorted_indices();
     grid.ForEachCandidateRun(c, reach, [&](std::uint32_t first, std::uint32_t last) {
-        const std::size_t need = s.n + (last - first);
+        const std::size_t need = s.n + (last - first) + 8;
         if (need > s.index.size()) {
             const std::size_t cap = std::max<std::size_t>(1024, 2 * need);
             for (auto* v : {&s.x, &s.y, &s.z}) v->resize(cap);
             s.index.resize(cap);
         }
-        std::size_t n = s.n;
-        float *X = s.x.data(), *Y = s.y.data(), *Z = s.z.data();
-        std::uint32_t* I = s.index.data();
-        for (std::uint32_t j = first; j < last; ++j) {
-            const Vec3f p = pts[j];
-            const Vec3f e = p - c;
-            X[n] = p.x();
-            Y[n] = p.y();
-            Z[n] = p.z();
-            I[n] = idx[j];
-            n += e.squaredNorm() <= r2 ? 1 : 0;
-        }
-        s.n = n;
+        s.n += kernels.select_within(sorted[0] + first, sorted[1] + first, sorted[2] + first, idx + first, last - first,
+                                     c.x(), c.y(), c.z(), r2, s.x.data() + s.n, s.y.data() + s.n, s.z.data() + s.n,
+                                     s.index.data() + s.n);
     });
     s.c = c;
     s.reach = reach;
@@ -315,14 +315,14 @@ void FillSuperset(const UniformGrid& grid, std::uint64_t owner, const Vec3f& c, 
 // differences), relative to o: the first step of both FitAt (eq. 8, 9) and Evaluate (eq. 1-4).
 // From the thread's superset when it covers the ball (dense grids), else from the grid. `h`:
 // how far beyond the gather a new superset reaches (kSupersetMargin x h).
-void Gather(const UniformGrid& grid, std::uint64_t owner, const Vec3f& o, float radius, double h, NeighborBatch& nb,
-            const fit_kernels::Kernels& kernels) {
+void Gather(const UniformGrid& grid, const float* const sorted[3], std::uint64_t owner, const Vec3f& o, float radius,
+            double h, NeighborBatch& nb, const fit_kernels::Kernels& kernels) {
     nb.clear();
     if (grid.dense()) {
         Superset& s = tls_superset;
         // Covered when |o - c| + radius <= reach, less a hair for the rounding of these floats.
         const auto covers = [&] { return s.owner == owner && (o - s.c).norm() + radius <= s.reach * (1.0f - 1e-4f); };
-        if (!covers()) FillSuperset(grid, owner, o, radius + kSupersetMargin * static_cast<float>(h), s);
+        if (!covers()) FillSuperset(grid, sorted, kernels, owner, o, radius + kSupersetMargin * static_cast<float>(h), s);
         // The candidates within `radius` of o, their float offsets and distances: d2 is Eigen's
         // squaredNorm of the float offset, x^2 + (y^2 + z^2), as PushWithin computes it, so the
         // test and the stored values are PushWithin's to the bit (fit_kernels.h's GatherWithin).
@@ -349,7 +349,8 @@ template <typename Impl>
 WeightedMoments GatherWeighted(const Impl& im, const Vec3f& o, float cutoff, std::int64_t ball, NeighborBatch& nb) {
     const AaOptions& opt = im.opt;
     const float H = im.scale.empty() ? opt.h : ball >= 0 ? im.reach[std::size_t(ball)] : im.max_scale;
-    Gather(*im.grid, im.id, o, cutoff * H, H, nb, *im.kernels);
+    const float* const sorted[3] = {im.sorted_x.data(), im.sorted_y.data(), im.sorted_z.data()};
+    Gather(*im.grid, sorted, im.id, o, cutoff * H, H, nb, *im.kernels);
     if (nb.size() < 3) return {};
     // nb.Weights(opt.h), through the kernels.
     if (im.scale.empty()) im.kernels->gauss_weights(nb.d2.data(), static_cast<float>(1.0 / (double(opt.h) * double(opt.h))), nb.w.data(), nb.size());

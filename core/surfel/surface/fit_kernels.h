@@ -62,6 +62,13 @@ using GatherWithinFn = std::size_t (*)(const float* X, const float* Y, const flo
                                        std::size_t n, float ox, float oy, float oz, float r2, float* out_x,
                                        float* out_y, float* out_z, float* out_d2, std::uint32_t* out_i);
 
+/// GatherWithin's filter keeping the points themselves: for each j with |(X, Y, Z)[j] - o|^2 <= r2
+/// (the same float test), in order, appends (X, Y, Z)[j] and I[j]; returns how many. Room for
+/// n + 8 entries.
+using SelectWithinFn = std::size_t (*)(const float* X, const float* Y, const float* Z, const std::uint32_t* I,
+                                       std::size_t n, float ox, float oy, float oz, float r2, float* out_x,
+                                       float* out_y, float* out_z, std::uint32_t* out_i);
+
 struct Kernels {
     MomentsFn moments;
     PolySumsFn poly_sums;
@@ -71,6 +78,7 @@ struct Kernels {
     ToLocalFn to_local;
     NormalFactorsFn normal_factors;
     GatherWithinFn gather_within;
+    SelectWithinFn select_within;
     const char* isa;  ///< "avx2" or "baseline"
 };
 

@@ -104,6 +104,29 @@ std::size_t GatherWithinPacked(const float* X, const float* Y, const float* Z, c
     return k + GatherWithin(X + j, Y + j, Z + j, I + j, n - j, ox, oy, oz, r2, OX + k, OY + k, OZ + k, OD + k, OI + k);
 }
 
+// SelectWithin eight candidates at a time (GatherWithinPacked storing the points).
+std::size_t SelectWithinPacked(const float* X, const float* Y, const float* Z, const std::uint32_t* I, std::size_t n,
+                               float ox, float oy, float oz, float r2, float* OX, float* OY, float* OZ,
+                               std::uint32_t* OI) {
+    const __m256 vx = _mm256_set1_ps(ox), vy = _mm256_set1_ps(oy), vz = _mm256_set1_ps(oz), vr = _mm256_set1_ps(r2);
+    std::size_t j = 0, k = 0;
+    for (; j + 8 <= n; j += 8) {
+        const __m256 px = _mm256_loadu_ps(X + j), py = _mm256_loadu_ps(Y + j), pz = _mm256_loadu_ps(Z + j);
+        const __m256 ex = _mm256_sub_ps(px, vx), ey = _mm256_sub_ps(py, vy), ez = _mm256_sub_ps(pz, vz);
+        const __m256 d2 = _mm256_add_ps(_mm256_mul_ps(ex, ex), _mm256_add_ps(_mm256_mul_ps(ey, ey), _mm256_mul_ps(ez, ez)));
+        const int mask = _mm256_movemask_ps(_mm256_cmp_ps(d2, vr, _CMP_LE_OQ));
+        if (mask == 0) continue;
+        const __m256i p = _mm256_load_si256(reinterpret_cast<const __m256i*>(kPack.lanes[mask]));
+        _mm256_storeu_ps(OX + k, _mm256_permutevar8x32_ps(px, p));
+        _mm256_storeu_ps(OY + k, _mm256_permutevar8x32_ps(py, p));
+        _mm256_storeu_ps(OZ + k, _mm256_permutevar8x32_ps(pz, p));
+        const __m256i idx = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(I + j));
+        _mm256_storeu_si256(reinterpret_cast<__m256i*>(OI + k), _mm256_permutevar8x32_epi32(idx, p));
+        k += static_cast<std::size_t>(__builtin_popcount(static_cast<unsigned>(mask)));
+    }
+    return k + SelectWithin(X + j, Y + j, Z + j, I + j, n - j, ox, oy, oz, r2, OX + k, OY + k, OZ + k, OI + k);
+}
+
 // NormalFactors eight at a time (the same operations in the same order, exp as Exp8).
 __attribute__((target("avx2,fma"))) void NormalFactorsFma(const float* N, std::size_t n_points,
                                                           const std::uint32_t* index, std::size_t n, const float* ref,

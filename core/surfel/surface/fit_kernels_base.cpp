@@ -28,12 +28,15 @@ bool ExpMatchesLibm();
 std::size_t GatherWithinPacked(const float* X, const float* Y, const float* Z, const std::uint32_t* I, std::size_t n,
                                float ox, float oy, float oz, float r2, float* OX, float* OY, float* OZ, float* OD,
                                std::uint32_t* OI);
+std::size_t SelectWithinPacked(const float* X, const float* Y, const float* Z, const std::uint32_t* I, std::size_t n,
+                               float ox, float oy, float oz, float r2, float* OX, float* OY, float* OZ,
+                               std::uint32_t* OI);
 }  // namespace avx2
 
 const Kernels& Baseline() {
     static const Kernels k{&baseline::Moments, &baseline::PolySums, &baseline::SquaredDistances,
                            &baseline::GaussWeights, &baseline::SquaredDistancesAround, &baseline::ToLocal,
-                           &baseline::NormalFactors, &baseline::GatherWithin, "baseline"};
+                           &baseline::NormalFactors, &baseline::GatherWithin, &baseline::SelectWithin, "baseline"};
     return k;
 }
 
@@ -42,7 +45,7 @@ const Kernels& Best() {
         static Kernels k{&avx2::Moments,      &avx2::PolySums,
                          &avx2::SquaredDistances, &avx2::GaussWeights,
                          &avx2::SquaredDistancesAround, &avx2::ToLocal,
-                         &avx2::NormalFactors, &avx2::GatherWithinPacked, "avx2"};
+                         &avx2::NormalFactors, &avx2::GatherWithinPacked, &avx2::SelectWithinPacked, "avx2"};
         const char* force = std::getenv("SURFEL_FIT_KERNELS");
         if (force && std::strcmp(force, "baseline") == 0) return Baseline();
 #if defined(__x86_64__) || defined(__i386__)

@@ -152,7 +152,8 @@ TEST(FitKernels, NormalFactorsAreExpfToTheBit) {
 }
 
 // The gather's filter: both builds keep the same candidates, in order, with the offsets and
-// distances of NeighborBatch::PushWithin (the float test of the grid walk) to the bit.
+// distances of NeighborBatch::PushWithin (the float test of the grid walk) to the bit; the
+// superset's (SelectWithin) keeps the same candidates as points.
 TEST(FitKernels, GatherWithinIsPushWithinToTheBit) {
     std::mt19937 rng(41);
     std::uniform_real_distribution<float> pos(-0.01f, 0.01f);
@@ -176,6 +177,18 @@ TEST(FitKernels, GatherWithinIsPushWithinToTheBit) {
             const std::size_t m = k->gather_within(X.data(), Y.data(), Z.data(), idx.data(), n, o.x(), o.y(), o.z(), r2,
                                                    ox.data(), oy.data(), oz.data(), od.data(), oi.data());
             ASSERT_EQ(m, want.size()) << k->isa << " n = " << n;
+            std::vector<float> px(n + 8), py(n + 8), pz(n + 8);
+            std::vector<std::uint32_t> pi(n + 8);
+            const std::size_t ms = k->select_within(X.data(), Y.data(), Z.data(), idx.data(), n, o.x(), o.y(), o.z(), r2,
+                                                    px.data(), py.data(), pz.data(), pi.data());
+            ASSERT_EQ(ms, m) << k->isa << " n = " << n;
+            for (std::size_t j = 0; j < m; ++j) {
+                ASSERT_EQ(pi[j], want.index[j]) << k->isa << " j = " << j;
+                const std::size_t src = (want.index[j] - 3) / 7;
+                ASSERT_EQ(px[j], X[src]);
+                ASSERT_EQ(py[j], Y[src]);
+                ASSERT_EQ(pz[j], Z[src]);
+            }
             for (std::size_t j = 0; j < m; ++j) {
                 ASSERT_EQ(ox[j], want.x[j]) << k->isa << " j = " << j;
                 ASSERT_EQ(oy[j], want.y[j]) << k->isa << " j = " << j;
