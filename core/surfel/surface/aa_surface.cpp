@@ -10,6 +10,7 @@
 
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
+#include <tbb/parallel_invoke.h>
 
 #include "surfel/base/error.h"
 #include "surfel/base/validate.h"
@@ -169,6 +170,27 @@ AaSurface::AaSurface(const PointCloud& cloud, const AaOptions& options, const Pr
     AaOptions& o = impl_->opt;
     if (cloud.size() < 3) throw Error(ErrorCode::kInvalidArgument, "the surface needs at least 3 points, got " + std::to_string(cloud.size()));
     o.Validate();
+    // The normals of the normal-aware weights (the cloud's, else estimated: the longest part of
+    // the setup, with serial stretches: the kd-tree build, the orientation's spanning tree) run
+    // beside the rest of the setup (sampling density, grid, scales), which does not need them.
+    // Each part writes its own members and neither depends on the thread count.
+    const auto weight_normals = [&] {
+        if (!(o.normal_sigma > 0)) return;
+        if (cloud.has_normals()) {
+            impl_->weight_normals = cloud.normals;
+        } else {
+            const KdTree tree(cloud.positions);
+            // Only the caller's cancellation: its fractions are the caller's whole job's.
+            const ProgressFn poll = [&progress](double) { return !progress || progress(0.0); };
+            impl_->weight_normals = EstimateNormals(tree, {}, poll).normals;
+        }
+    };
+    tbb::parallel_invoke(weight_normals, [&] { SetUpScales(); });
+}
+
+void AaSurface::SetUpScales() {
+    const PointCloud& cloud = impl_->cloud;
+    AaOptions& o = impl_->opt;
     const SamplingDensity density = ComputeSamplingDensity(cloud.positions, o.ball_k);
     impl_->ball_radius = density.radius;
     if (o.h == 0) o.h = DefaultScale(density);
@@ -219,16 +241,6 @@ AaSurface::AaSurface(const PointCloud& cloud, const AaOptions& options, const Pr
     if (o.ball_h > 0)
         for (std::size_t i = 0; i < cloud.size(); ++i)
             impl_->ball_radius[i] = std::max(impl_->ball_radius[i], o.ball_h * PointScale(static_cast<std::uint32_t>(i)));
-    if (o.normal_sigma > 0) {
-        if (cloud.has_normals()) {
-            impl_->weight_normals = cloud.normals;
-        } else {
-            const KdTree tree(cloud.positions);
-            // Only the caller's cancellation: its fractions are the caller's whole job's.
-            const ProgressFn poll = [&progress](double) { return !progress || progress(0.0); };
-            impl_->weight_normals = EstimateNormals(tree, {}, poll).normals;
-        }
-    }
     impl_->id = next_surface_id.fetch_add(1, std::memory_order_relaxed);
     impl_->centers.resize(cloud.size());
     impl_->center_state.reset(new std::atomic<std::uint8_t>[cloud.size()]);

@@ -184,6 +184,9 @@ private:
     /// The ball centre's support plane and polynomial (no attributes), from the per-ball cache;
     /// false when that fit is not defined.
     bool CenterFit(std::uint32_t ball, Fit* out, AaCounters* counters) const;
+    /// The constructor's setup besides the weight normals: ball radii, h, precision, grid, scales,
+    /// caches (run beside the normal estimation).
+    void SetUpScales();
     struct Impl;
     std::unique_ptr<Impl> impl_;
 };
