@@ -58,6 +58,9 @@ struct AaSurface::Impl {
     std::unique_ptr<UniformGrid> grid;
     // The grid's cell-sorted points as structure of arrays (dense grids: the superset's fill).
     std::vector<float> sorted_x, sorted_y, sorted_z;
+    // The weight normals in the same order, x/y/z arrays (dense grid, normal-aware weights): they
+    // travel with the points through the superset and the gathers.
+    std::vector<float> sorted_nx, sorted_ny, sorted_nz;
     std::vector<CenterEntry> centers;
     // 0 empty, 1 being computed, 2 ready, 3 ready but undefined (no fit at that centre).
     std::unique_ptr<std::atomic<std::uint8_t>[]> center_state;
@@ -186,6 +189,15 @@ AaSurface::AaSurface(const PointCloud& cloud, const AaOptions& options, const Pr
         }
     };
     tbb::parallel_invoke(weight_normals, [&] { SetUpScales(); });
+    if (impl_->grid->dense() && !impl_->weight_normals.empty()) {
+        const std::size_t n = cloud.size();
+        const std::uint32_t* order = impl_->grid->sorted_indices();
+        for (auto* v : {&impl_->sorted_nx, &impl_->sorted_ny, &impl_->sorted_nz}) v->resize(n);
+        for (std::size_t i = 0; i < n; ++i) {
+            const Vec3f& nrm = impl_->weight_normals[order[i]];
+            impl_->sorted_nx[i] = nrm.x(), impl_->sorted_ny[i] = nrm.y(), impl_->sorted_nz[i] = nrm.z();
+        }
+    }
 }
 
 void AaSurface::SetUpScales() {
@@ -292,16 +304,31 @@ struct Superset {
     float reach = 0.0f;
     std::vector<float> x, y, z;
     std::vector<std::uint32_t> index;
+    std::vector<float> nx, ny, nz;  // the points' weight normals (when the surface has them)
     std::size_t n = 0;
 };
 thread_local Superset tls_superset;
 
+// The weight normals of the last gather's neighbours, in its order (normal-aware weights).
+struct GatheredNormals {
+    std::vector<float> x, y, z;
+};
+thread_local GatheredNormals tls_normals;
+
+// The sorted points and, when the surface has weight normals, their normals (else null), as
+// x/y/z arrays: what the superset is filled from.
+struct SortedPoints {
+    const float* p[3];
+    const float* n[3];
+    bool normals;
+};
+
 // How far (in units of h) the superset reaches beyond the gather that filled it.
 constexpr float kSupersetMargin = 1.0f;
 
-// Fills `s` with the points within `reach` of c, in ascending cell order (dense grid only; `sorted`:
-// the grid's sorted points as x, y, z arrays), eight candidates at a time (SelectWithin).
-void FillSuperset(const UniformGrid& grid, const float* const sorted[3], const fit_kernels::Kernels& kernels,
+// Fills `s` with the points within `reach` of c, in ascending cell order (dense grid only), with
+// their normals when `sorted` has them, eight candidates at a time (SelectWithin).
+void FillSuperset(const UniformGrid& grid, const SortedPoints& sorted, const fit_kernels::Kernels& kernels,
                   std::uint64_t owner, const Vec3f& c, float reach, Superset& s) {
     s.owner = 0;
     s.n = 0;
@@ -311,12 +338,15 @@ void FillSuperset(const UniformGrid& grid, const float* const sorted[3], const f
         const std::size_t need = s.n + (last - first) + 8;
         if (need > s.index.size()) {
             const std::size_t cap = std::max<std::size_t>(1024, 2 * need);
-            for (auto* v : {&s.x, &s.y, &s.z}) v->resize(cap);
+            for (auto* v : {&s.x, &s.y, &s.z, &s.nx, &s.ny, &s.nz}) v->resize(cap);
             s.index.resize(cap);
         }
-        s.n += kernels.select_within(sorted[0] + first, sorted[1] + first, sorted[2] + first, idx + first, last - first,
-                                     c.x(), c.y(), c.z(), r2, s.x.data() + s.n, s.y.data() + s.n, s.z.data() + s.n,
-                                     s.index.data() + s.n);
+        const float* const carry[3] = {sorted.n[0] + first, sorted.n[1] + first, sorted.n[2] + first};
+        float* const carry_out[3] = {s.nx.data() + s.n, s.ny.data() + s.n, s.nz.data() + s.n};
+        s.n += kernels.select_within(sorted.p[0] + first, sorted.p[1] + first, sorted.p[2] + first, idx + first,
+                                     sorted.normals ? carry : nullptr, last - first, c.x(), c.y(), c.z(), r2,
+                                     s.x.data() + s.n, s.y.data() + s.n, s.z.data() + s.n, s.index.data() + s.n,
+                                     carry_out);
     });
     s.c = c;
     s.reach = reach;
@@ -327,8 +357,11 @@ void FillSuperset(const UniformGrid& grid, const float* const sorted[3], const f
 // differences), relative to o: the first step of both FitAt (eq. 8, 9) and Evaluate (eq. 1-4).
 // From the thread's superset when it covers the ball (dense grids), else from the grid. `h`:
 // how far beyond the gather a new superset reaches (kSupersetMargin x h).
-void Gather(const UniformGrid& grid, const float* const sorted[3], std::uint64_t owner, const Vec3f& o, float radius,
-            double h, NeighborBatch& nb, const fit_kernels::Kernels& kernels) {
+// With `sorted.normals`, the neighbours' weight normals go to tls_normals (`normals`: all of them,
+// for the grid walk's path).
+void Gather(const UniformGrid& grid, const SortedPoints& sorted, const std::vector<Vec3f>& normals,
+            std::uint64_t owner, const Vec3f& o, float radius, double h, NeighborBatch& nb,
+            const fit_kernels::Kernels& kernels) {
     nb.clear();
     if (grid.dense()) {
         Superset& s = tls_superset;
@@ -340,15 +373,31 @@ void Gather(const UniformGrid& grid, const float* const sorted[3], std::uint64_t
         // test and the stored values are PushWithin's to the bit (fit_kernels.h's GatherWithin).
         const std::size_t m = s.n;
         nb.Reserve(m + 8);
-        const std::size_t n =
-            kernels.gather_within(s.x.data(), s.y.data(), s.z.data(), s.index.data(), m, o.x(), o.y(), o.z(),
-                                  radius * radius, nb.x.data(), nb.y.data(), nb.z.data(), nb.d2.data(), nb.index.data());
+        GatheredNormals& gn = tls_normals;
+        if (sorted.normals && gn.x.size() < m + 8)
+            for (auto* v : {&gn.x, &gn.y, &gn.z}) v->resize(std::max<std::size_t>(1024, 2 * (m + 8)));
+        const float* const carry[3] = {s.nx.data(), s.ny.data(), s.nz.data()};
+        float* const carry_out[3] = {gn.x.data(), gn.y.data(), gn.z.data()};
+        const std::size_t n = kernels.gather_within(s.x.data(), s.y.data(), s.z.data(), s.index.data(),
+                                                    sorted.normals ? carry : nullptr, m, o.x(), o.y(), o.z(),
+                                                    radius * radius, nb.x.data(), nb.y.data(), nb.z.data(),
+                                                    nb.d2.data(), nb.index.data(), carry_out);
         nb.Resize(n);
     } else {
         grid.ForEachCandidateRun(o, radius, [&](std::uint32_t first, std::uint32_t last) {
             nb.PushWithin(grid.sorted_points() + first, grid.sorted_indices() + first, last - first, o,
                           radius * radius);
         });
+        if (!normals.empty()) {
+            GatheredNormals& gn = tls_normals;
+            const std::size_t n = nb.size();
+            if (gn.x.size() < n)
+                for (auto* v : {&gn.x, &gn.y, &gn.z}) v->resize(std::max<std::size_t>(1024, 2 * n));
+            for (std::size_t k = 0; k < n; ++k) {
+                const Vec3f& nrm = normals[nb.index[k]];
+                gn.x[k] = nrm.x(), gn.y[k] = nrm.y(), gn.z[k] = nrm.z();
+            }
+        }
     }
 }
 
@@ -361,19 +410,22 @@ template <typename Impl>
 WeightedMoments GatherWeighted(const Impl& im, const Vec3f& o, float cutoff, std::int64_t ball, NeighborBatch& nb) {
     const AaOptions& opt = im.opt;
     const float H = im.scale.empty() ? opt.h : ball >= 0 ? im.reach[std::size_t(ball)] : im.max_scale;
-    const float* const sorted[3] = {im.sorted_x.data(), im.sorted_y.data(), im.sorted_z.data()};
-    Gather(*im.grid, sorted, im.id, o, cutoff * H, H, nb, *im.kernels);
+    const SortedPoints sorted{{im.sorted_x.data(), im.sorted_y.data(), im.sorted_z.data()},
+                              {im.sorted_nx.data(), im.sorted_ny.data(), im.sorted_nz.data()},
+                              !im.sorted_nx.empty()};
+    Gather(*im.grid, sorted, im.weight_normals, im.id, o, cutoff * H, H, nb, *im.kernels);
     if (nb.size() < 3) return {};
     // nb.Weights(opt.h), through the kernels.
     if (im.scale.empty()) im.kernels->gauss_weights(nb.d2.data(), static_cast<float>(1.0 / (double(opt.h) * double(opt.h))), nb.w.data(), nb.size());
     else nb.WeightsPerPoint(im.inv_h2.data(), cutoff * cutoff);
     if (ball >= 0 && !im.weight_normals.empty()) {
         // w_j *= exp(-c^2), c = (1 - n_j . n_ball) / sigma, through the kernels (fit_kernels.h).
-        static_assert(sizeof(Vec3f) == 3 * sizeof(float));
+        // The neighbours' normals came with them (tls_normals, filled by Gather).
         const Vec3f nr = im.weight_normals[std::size_t(ball)];
         const float ref[3] = {nr.x(), nr.y(), nr.z()};
-        im.kernels->normal_factors(im.weight_normals.front().data(), im.weight_normals.size(), nb.index.data(),
-                                   nb.size(), ref, 1.0f / opt.normal_sigma, nb.w.data());
+        const GatheredNormals& gn = tls_normals;
+        im.kernels->normal_factors(gn.x.data(), gn.y.data(), gn.z.data(), nb.size(), ref, 1.0f / opt.normal_sigma,
+                                   nb.w.data());
     }
     double m[10];
     im.kernels->moments(nb.x.data(), nb.y.data(), nb.z.data(), nb.w.data(), nb.size(), m);

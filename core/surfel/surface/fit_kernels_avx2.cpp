@@ -78,36 +78,13 @@ constexpr PackTable kPack;
 
 }  // namespace
 
-// GatherWithin eight candidates at a time: the distances as SquaredDistances, then the accepted
-// lanes packed to the front (a permutation from kPack) and stored eight wide.
-std::size_t GatherWithinPacked(const float* X, const float* Y, const float* Z, const std::uint32_t* I, std::size_t n,
-                               float ox, float oy, float oz, float r2, float* OX, float* OY, float* OZ, float* OD,
-                               std::uint32_t* OI) {
-    const __m256 vx = _mm256_set1_ps(ox), vy = _mm256_set1_ps(oy), vz = _mm256_set1_ps(oz), vr = _mm256_set1_ps(r2);
-    std::size_t j = 0, k = 0;
-    for (; j + 8 <= n; j += 8) {
-        const __m256 ex = _mm256_sub_ps(_mm256_loadu_ps(X + j), vx);
-        const __m256 ey = _mm256_sub_ps(_mm256_loadu_ps(Y + j), vy);
-        const __m256 ez = _mm256_sub_ps(_mm256_loadu_ps(Z + j), vz);
-        const __m256 d2 = _mm256_add_ps(_mm256_mul_ps(ex, ex), _mm256_add_ps(_mm256_mul_ps(ey, ey), _mm256_mul_ps(ez, ez)));
-        const int mask = _mm256_movemask_ps(_mm256_cmp_ps(d2, vr, _CMP_LE_OQ));
-        if (mask == 0) continue;
-        const __m256i p = _mm256_load_si256(reinterpret_cast<const __m256i*>(kPack.lanes[mask]));
-        _mm256_storeu_ps(OX + k, _mm256_permutevar8x32_ps(ex, p));
-        _mm256_storeu_ps(OY + k, _mm256_permutevar8x32_ps(ey, p));
-        _mm256_storeu_ps(OZ + k, _mm256_permutevar8x32_ps(ez, p));
-        _mm256_storeu_ps(OD + k, _mm256_permutevar8x32_ps(d2, p));
-        const __m256i idx = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(I + j));
-        _mm256_storeu_si256(reinterpret_cast<__m256i*>(OI + k), _mm256_permutevar8x32_epi32(idx, p));
-        k += static_cast<std::size_t>(__builtin_popcount(static_cast<unsigned>(mask)));
-    }
-    return k + GatherWithin(X + j, Y + j, Z + j, I + j, n - j, ox, oy, oz, r2, OX + k, OY + k, OZ + k, OD + k, OI + k);
-}
-
-// SelectWithin eight candidates at a time (GatherWithinPacked storing the points).
-std::size_t SelectWithinPacked(const float* X, const float* Y, const float* Z, const std::uint32_t* I, std::size_t n,
-                               float ox, float oy, float oz, float r2, float* OX, float* OY, float* OZ,
-                               std::uint32_t* OI) {
+// The filter of GatherWithin and SelectWithin eight candidates at a time: the distances as
+// SquaredDistances, then the accepted lanes packed to the front (a permutation from kPack) and
+// stored eight wide; `offsets`: store p - o (GatherWithin, with d2) or p (SelectWithin).
+template <bool offsets>
+std::size_t FilterPacked(const float* X, const float* Y, const float* Z, const std::uint32_t* I, const float* const* C,
+                         std::size_t n, float ox, float oy, float oz, float r2, float* OX, float* OY, float* OZ,
+                         float* OD, std::uint32_t* OI, float* const* OC) {
     const __m256 vx = _mm256_set1_ps(ox), vy = _mm256_set1_ps(oy), vz = _mm256_set1_ps(oz), vr = _mm256_set1_ps(r2);
     std::size_t j = 0, k = 0;
     for (; j + 8 <= n; j += 8) {
@@ -117,38 +94,52 @@ std::size_t SelectWithinPacked(const float* X, const float* Y, const float* Z, c
         const int mask = _mm256_movemask_ps(_mm256_cmp_ps(d2, vr, _CMP_LE_OQ));
         if (mask == 0) continue;
         const __m256i p = _mm256_load_si256(reinterpret_cast<const __m256i*>(kPack.lanes[mask]));
-        _mm256_storeu_ps(OX + k, _mm256_permutevar8x32_ps(px, p));
-        _mm256_storeu_ps(OY + k, _mm256_permutevar8x32_ps(py, p));
-        _mm256_storeu_ps(OZ + k, _mm256_permutevar8x32_ps(pz, p));
+        _mm256_storeu_ps(OX + k, _mm256_permutevar8x32_ps(offsets ? ex : px, p));
+        _mm256_storeu_ps(OY + k, _mm256_permutevar8x32_ps(offsets ? ey : py, p));
+        _mm256_storeu_ps(OZ + k, _mm256_permutevar8x32_ps(offsets ? ez : pz, p));
+        if (offsets) _mm256_storeu_ps(OD + k, _mm256_permutevar8x32_ps(d2, p));
         const __m256i idx = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(I + j));
         _mm256_storeu_si256(reinterpret_cast<__m256i*>(OI + k), _mm256_permutevar8x32_epi32(idx, p));
+        if (C)
+            for (int c = 0; c < 3; ++c) _mm256_storeu_ps(OC[c] + k, _mm256_permutevar8x32_ps(_mm256_loadu_ps(C[c] + j), p));
         k += static_cast<std::size_t>(__builtin_popcount(static_cast<unsigned>(mask)));
     }
-    return k + SelectWithin(X + j, Y + j, Z + j, I + j, n - j, ox, oy, oz, r2, OX + k, OY + k, OZ + k, OI + k);
+    const float* const tail_in[3] = {C ? C[0] + j : nullptr, C ? C[1] + j : nullptr, C ? C[2] + j : nullptr};
+    float* const tail_out[3] = {C ? OC[0] + k : nullptr, C ? OC[1] + k : nullptr, C ? OC[2] + k : nullptr};
+    if (offsets)
+        return k + GatherWithin(X + j, Y + j, Z + j, I + j, C ? tail_in : nullptr, n - j, ox, oy, oz, r2, OX + k,
+                                OY + k, OZ + k, OD + k, OI + k, tail_out);
+    return k + SelectWithin(X + j, Y + j, Z + j, I + j, C ? tail_in : nullptr, n - j, ox, oy, oz, r2, OX + k, OY + k,
+                            OZ + k, OI + k, tail_out);
+}
+
+std::size_t GatherWithinPacked(const float* X, const float* Y, const float* Z, const std::uint32_t* I,
+                               const float* const* C, std::size_t n, float ox, float oy, float oz, float r2, float* OX,
+                               float* OY, float* OZ, float* OD, std::uint32_t* OI, float* const* OC) {
+    return FilterPacked<true>(X, Y, Z, I, C, n, ox, oy, oz, r2, OX, OY, OZ, OD, OI, OC);
+}
+
+std::size_t SelectWithinPacked(const float* X, const float* Y, const float* Z, const std::uint32_t* I,
+                               const float* const* C, std::size_t n, float ox, float oy, float oz, float r2, float* OX,
+                               float* OY, float* OZ, std::uint32_t* OI, float* const* OC) {
+    return FilterPacked<false>(X, Y, Z, I, C, n, ox, oy, oz, r2, OX, OY, OZ, nullptr, OI, OC);
 }
 
 // NormalFactors eight at a time (the same operations in the same order, exp as Exp8).
-__attribute__((target("avx2,fma"))) void NormalFactorsFma(const float* N, std::size_t n_points,
-                                                          const std::uint32_t* index, std::size_t n, const float* ref,
-                                                          float inv, float* w) {
+__attribute__((target("avx2,fma"))) void NormalFactorsFma(const float* NX, const float* NY, const float* NZ,
+                                                          std::size_t n, const float* ref, float inv, float* w) {
+    const __m256 rx = _mm256_set1_ps(ref[0]), ry = _mm256_set1_ps(ref[1]), rz = _mm256_set1_ps(ref[2]);
+    const __m256 one = _mm256_set1_ps(1.0f), vinv = _mm256_set1_ps(inv);
+    const __m256 sign = _mm256_set1_ps(-0.0f);
     std::size_t j = 0;
-    if (n_points < (std::size_t(1) << 29)) {  // 3 index + 2 fits the gathers' int32 offsets
-        const __m256 rx = _mm256_set1_ps(ref[0]), ry = _mm256_set1_ps(ref[1]), rz = _mm256_set1_ps(ref[2]);
-        const __m256 one = _mm256_set1_ps(1.0f), vinv = _mm256_set1_ps(inv);
-        const __m256 sign = _mm256_set1_ps(-0.0f);
-        for (; j + 8 <= n; j += 8) {
-            const __m256i i = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(index + j));
-            const __m256i i3 = _mm256_add_epi32(_mm256_add_epi32(i, i), i);
-            const __m256 nx = _mm256_i32gather_ps(N, i3, 4);
-            const __m256 ny = _mm256_i32gather_ps(N + 1, i3, 4);
-            const __m256 nz = _mm256_i32gather_ps(N + 2, i3, 4);
-            const __m256 d = _mm256_add_ps(_mm256_mul_ps(nx, rx), _mm256_add_ps(_mm256_mul_ps(ny, ry), _mm256_mul_ps(nz, rz)));
-            const __m256 c = _mm256_mul_ps(_mm256_sub_ps(one, d), vinv);
-            const __m256 a = _mm256_mul_ps(_mm256_xor_ps(c, sign), c);
-            _mm256_storeu_ps(w + j, _mm256_mul_ps(_mm256_loadu_ps(w + j), Exp8(a)));
-        }
+    for (; j + 8 <= n; j += 8) {
+        const __m256 nx = _mm256_loadu_ps(NX + j), ny = _mm256_loadu_ps(NY + j), nz = _mm256_loadu_ps(NZ + j);
+        const __m256 d = _mm256_add_ps(_mm256_mul_ps(nx, rx), _mm256_add_ps(_mm256_mul_ps(ny, ry), _mm256_mul_ps(nz, rz)));
+        const __m256 c = _mm256_mul_ps(_mm256_sub_ps(one, d), vinv);
+        const __m256 a = _mm256_mul_ps(_mm256_xor_ps(c, sign), c);
+        _mm256_storeu_ps(w + j, _mm256_mul_ps(_mm256_loadu_ps(w + j), Exp8(a)));
     }
-    NormalFactors(N, n_points, index + j, n - j, ref, inv, w + j);
+    NormalFactors(NX + j, NY + j, NZ + j, n - j, ref, inv, w + j);
 }
 
 // Whether Exp8 gives expf's bits here: a probe of arguments over the normal weights' range

@@ -20,17 +20,17 @@ void SquaredDistancesAround(const float* x, const float* y, const float* z, std:
                             double cz, float* out);
 void ToLocal(const float* x, const float* y, const float* z, std::size_t n, const double* f, double* lx, double* ly,
              double* lz);
-void NormalFactors(const float* N, std::size_t n_points, const std::uint32_t* index, std::size_t n, const float* ref,
-                   float inv, float* w);
-void NormalFactorsFma(const float* N, std::size_t n_points, const std::uint32_t* index, std::size_t n,
-                      const float* ref, float inv, float* w);
+void NormalFactors(const float* NX, const float* NY, const float* NZ, std::size_t n, const float* ref, float inv,
+                   float* w);
+void NormalFactorsFma(const float* NX, const float* NY, const float* NZ, std::size_t n, const float* ref, float inv,
+                      float* w);
 bool ExpMatchesLibm();
-std::size_t GatherWithinPacked(const float* X, const float* Y, const float* Z, const std::uint32_t* I, std::size_t n,
-                               float ox, float oy, float oz, float r2, float* OX, float* OY, float* OZ, float* OD,
-                               std::uint32_t* OI);
-std::size_t SelectWithinPacked(const float* X, const float* Y, const float* Z, const std::uint32_t* I, std::size_t n,
-                               float ox, float oy, float oz, float r2, float* OX, float* OY, float* OZ,
-                               std::uint32_t* OI);
+std::size_t GatherWithinPacked(const float* X, const float* Y, const float* Z, const std::uint32_t* I,
+                               const float* const* C, std::size_t n, float ox, float oy, float oz, float r2, float* OX,
+                               float* OY, float* OZ, float* OD, std::uint32_t* OI, float* const* OC);
+std::size_t SelectWithinPacked(const float* X, const float* Y, const float* Z, const std::uint32_t* I,
+                               const float* const* C, std::size_t n, float ox, float oy, float oz, float r2, float* OX,
+                               float* OY, float* OZ, std::uint32_t* OI, float* const* OC);
 }  // namespace avx2
 
 const Kernels& Baseline() {

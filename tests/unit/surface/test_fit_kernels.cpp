@@ -140,9 +140,12 @@ TEST(FitKernels, NormalFactorsAreExpfToTheBit) {
                 const float c = (1.0f - normals[index[j]].dot(ref)) * inv;
                 want[j] *= std::exp(-c * c);
             }
+            std::vector<float> nx(n), ny(n), nz(n);
+            for (std::size_t j = 0; j < n; ++j)
+                nx[j] = normals[index[j]].x(), ny[j] = normals[index[j]].y(), nz[j] = normals[index[j]].z();
             for (const fit_kernels::Kernels* k : {&fit_kernels::Baseline(), &fit_kernels::Best()}) {
                 std::vector<float> w = w0;
-                k->normal_factors(normals.front().data(), points, index.data(), n, r, inv, w.data());
+                k->normal_factors(nx.data(), ny.data(), nz.data(), n, r, inv, w.data());
                 for (std::size_t j = 0; j < n; ++j)  // (a NaN's sign depends on the operand order)
                     ASSERT_TRUE(std::memcmp(&w[j], &want[j], sizeof(float)) == 0 || (std::isnan(w[j]) && std::isnan(want[j])))
                         << k->isa << " sigma " << sigma << " j = " << j << ": " << w[j] << " vs " << want[j];
@@ -174,13 +177,22 @@ TEST(FitKernels, GatherWithinIsPushWithinToTheBit) {
         for (const fit_kernels::Kernels* k : {&fit_kernels::Baseline(), &fit_kernels::Best()}) {
             std::vector<float> ox(n + 8), oy(n + 8), oz(n + 8), od(n + 8);
             std::vector<std::uint32_t> oi(n + 8);
-            const std::size_t m = k->gather_within(X.data(), Y.data(), Z.data(), idx.data(), n, o.x(), o.y(), o.z(), r2,
-                                                   ox.data(), oy.data(), oz.data(), od.data(), oi.data());
+            // Three attributes carried along: the points' x, y, z again, times 2, 3, 4.
+            std::vector<float> c0(n), c1(n), c2(n), g0(n + 8), g1(n + 8), g2(n + 8), s0(n + 8), s1(n + 8), s2(n + 8);
+            for (std::size_t j = 0; j < n; ++j) c0[j] = 2 * X[j], c1[j] = 3 * Y[j], c2[j] = 4 * Z[j];
+            const float* const carry[3] = {c0.data(), c1.data(), c2.data()};
+            float* const gout[3] = {g0.data(), g1.data(), g2.data()};
+            float* const sout[3] = {s0.data(), s1.data(), s2.data()};
+            const std::size_t m = k->gather_within(X.data(), Y.data(), Z.data(), idx.data(), carry, n, o.x(), o.y(),
+                                                   o.z(), r2, ox.data(), oy.data(), oz.data(), od.data(), oi.data(), gout);
+            ASSERT_EQ(k->gather_within(X.data(), Y.data(), Z.data(), idx.data(), nullptr, n, o.x(), o.y(), o.z(), r2,
+                                       ox.data(), oy.data(), oz.data(), od.data(), oi.data(), nullptr),
+                      m);
             ASSERT_EQ(m, want.size()) << k->isa << " n = " << n;
             std::vector<float> px(n + 8), py(n + 8), pz(n + 8);
             std::vector<std::uint32_t> pi(n + 8);
-            const std::size_t ms = k->select_within(X.data(), Y.data(), Z.data(), idx.data(), n, o.x(), o.y(), o.z(), r2,
-                                                    px.data(), py.data(), pz.data(), pi.data());
+            const std::size_t ms = k->select_within(X.data(), Y.data(), Z.data(), idx.data(), carry, n, o.x(), o.y(),
+                                                    o.z(), r2, px.data(), py.data(), pz.data(), pi.data(), sout);
             ASSERT_EQ(ms, m) << k->isa << " n = " << n;
             for (std::size_t j = 0; j < m; ++j) {
                 ASSERT_EQ(pi[j], want.index[j]) << k->isa << " j = " << j;
@@ -188,6 +200,12 @@ TEST(FitKernels, GatherWithinIsPushWithinToTheBit) {
                 ASSERT_EQ(px[j], X[src]);
                 ASSERT_EQ(py[j], Y[src]);
                 ASSERT_EQ(pz[j], Z[src]);
+                ASSERT_EQ(g0[j], c0[src]);
+                ASSERT_EQ(g1[j], c1[src]);
+                ASSERT_EQ(g2[j], c2[src]);
+                ASSERT_EQ(s0[j], c0[src]);
+                ASSERT_EQ(s1[j], c1[src]);
+                ASSERT_EQ(s2[j], c2[src]);
             }
             for (std::size_t j = 0; j < m; ++j) {
                 ASSERT_EQ(ox[j], want.x[j]) << k->isa << " j = " << j;
