@@ -2,6 +2,8 @@
 
 #include <Eigen/Eigenvalues>
 #include <algorithm>
+#include <future>
+#include <mutex>
 #include <cmath>
 #include <vector>
 #include <string>
@@ -10,7 +12,6 @@
 
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
-#include <tbb/parallel_invoke.h>
 
 #include "surfel/base/error.h"
 #include "surfel/base/validate.h"
@@ -66,6 +67,14 @@ struct AaSurface::Impl {
     std::unique_ptr<std::atomic<std::uint8_t>[]> center_state;
     std::uint64_t id = 0;  // this surface's key in the per-thread neighbour superset
     const fit_kernels::Kernels* kernels = &fit_kernels::Best();  // the fits' weighted sums
+    // Normal-aware weights on a cloud without normals: the estimation runs on its own thread from
+    // the constructor on (beside the rest of the setup and the caller's BVH build); the first
+    // evaluation waits for it and sorts the normals into grid order (AwaitNormals).
+    std::once_flag normals_once;
+    std::atomic<bool> normals_ready{false};
+    // Last, so that it is destroyed first: releasing it waits for the estimation, which writes
+    // weight_normals.
+    std::shared_future<void> normals_job;
     Impl(const PointCloud& c, const AaOptions& o) : cloud(c), opt(o) {}
 };
 
@@ -173,31 +182,46 @@ AaSurface::AaSurface(const PointCloud& cloud, const AaOptions& options, const Pr
     AaOptions& o = impl_->opt;
     if (cloud.size() < 3) throw Error(ErrorCode::kInvalidArgument, "the surface needs at least 3 points, got " + std::to_string(cloud.size()));
     o.Validate();
-    // The normals of the normal-aware weights (the cloud's, else estimated: the longest part of
-    // the setup, with serial stretches: the kd-tree build, the orientation's spanning tree) run
-    // beside the rest of the setup (sampling density, grid, scales), which does not need them.
-    // Each part writes its own members and neither depends on the thread count.
-    const auto weight_normals = [&] {
-        if (!(o.normal_sigma > 0)) return;
+    // The normals of the normal-aware weights: the cloud's, else estimated (the longest part of
+    // the setup, with serial stretches: the kd-tree build, the orientation's spanning tree) on
+    // another thread while this one sets up the rest (sampling density, grid, scales) and the
+    // caller builds its BVH; the first evaluation waits for them (AwaitNormals). Each part writes
+    // its own members and neither depends on the thread count.
+    if (o.normal_sigma > 0) {
         if (cloud.has_normals()) {
             impl_->weight_normals = cloud.normals;
         } else {
-            const KdTree tree(cloud.positions);
-            // Only the caller's cancellation: its fractions are the caller's whole job's.
-            const ProgressFn poll = [&progress](double) { return !progress || progress(0.0); };
-            impl_->weight_normals = EstimateNormals(tree, {}, poll).normals;
-        }
-    };
-    tbb::parallel_invoke(weight_normals, [&] { SetUpScales(); });
-    if (impl_->grid->dense() && !impl_->weight_normals.empty()) {
-        const std::size_t n = cloud.size();
-        const std::uint32_t* order = impl_->grid->sorted_indices();
-        for (auto* v : {&impl_->sorted_nx, &impl_->sorted_ny, &impl_->sorted_nz}) v->resize(n);
-        for (std::size_t i = 0; i < n; ++i) {
-            const Vec3f& nrm = impl_->weight_normals[order[i]];
-            impl_->sorted_nx[i] = nrm.x(), impl_->sorted_ny[i] = nrm.y(), impl_->sorted_nz[i] = nrm.z();
+            Impl* im = impl_.get();
+            impl_->normals_job = std::async(std::launch::async, [im, progress] {
+                const KdTree tree(im->cloud.positions);
+                // Only the caller's cancellation: its fractions are the caller's whole job's.
+                const ProgressFn poll = [&progress](double) { return !progress || progress(0.0); };
+                im->weight_normals = EstimateNormals(tree, {}, poll).normals;
+            }).share();
         }
     }
+    SetUpScales();
+    if (!impl_->normals_job.valid()) AwaitNormals();
+}
+
+void AaSurface::AwaitNormals() const {
+    if (impl_->normals_ready.load(std::memory_order_acquire)) return;
+    // (An exception of the estimation, e.g. Error(kCancelled), leaves the flag unset: every later
+    // call rethrows it from the shared future.)
+    std::call_once(impl_->normals_once, [this] {
+        Impl& im = *impl_;
+        if (im.normals_job.valid()) im.normals_job.get();
+        if (im.grid->dense() && !im.weight_normals.empty()) {
+            const std::size_t n = im.cloud.size();
+            const std::uint32_t* order = im.grid->sorted_indices();
+            for (auto* v : {&im.sorted_nx, &im.sorted_ny, &im.sorted_nz}) v->resize(n);
+            for (std::size_t i = 0; i < n; ++i) {
+                const Vec3f& nrm = im.weight_normals[order[i]];
+                im.sorted_nx[i] = nrm.x(), im.sorted_ny[i] = nrm.y(), im.sorted_nz[i] = nrm.z();
+            }
+        }
+        im.normals_ready.store(true, std::memory_order_release);
+    });
 }
 
 void AaSurface::SetUpScales() {
@@ -259,7 +283,9 @@ void AaSurface::SetUpScales() {
     for (std::size_t i = 0; i < cloud.size(); ++i) impl_->center_state[i].store(0, std::memory_order_relaxed);
 }
 
-AaSurface::~AaSurface() = default;
+AaSurface::~AaSurface() {
+    if (impl_->normals_job.valid()) impl_->normals_job.wait();
+}
 
 float AaSurface::h() const { return impl_->opt.h; }
 float AaSurface::precision() const { return impl_->opt.precision; }
@@ -287,7 +313,10 @@ float AaSurface::BoundaryScale(std::uint32_t i) const {
     cached.store(v, std::memory_order_relaxed);
     return v;
 }
-const std::vector<Vec3f>& AaSurface::WeightNormals() const { return impl_->weight_normals; }
+const std::vector<Vec3f>& AaSurface::WeightNormals() const {
+    AwaitNormals();
+    return impl_->weight_normals;
+}
 
 namespace {
 // The points within `reach` of a centre c, in the grid's cell order, as structure of arrays: a
@@ -435,6 +464,7 @@ WeightedMoments GatherWeighted(const Impl& im, const Vec3f& o, float cutoff, std
 }  // namespace
 
 bool AaSurface::FitAt(const Vec3d& r, Fit* fit, float cutoff, bool attributes, std::uint32_t ball) const {
+    AwaitNormals();
     const AaOptions& o = impl_->opt;
     const PointCloud& cloud = impl_->cloud;
     NeighborBatch& nb = tls_batch;
@@ -482,6 +512,7 @@ bool AaSurface::FitAt(const Vec3d& r, Fit* fit, float cutoff, bool attributes, s
 }
 
 AaEvaluation AaSurface::Evaluate(const Vec3d& x) const {
+    AwaitNormals();
     const AaOptions& o = impl_->opt;
     AaEvaluation ev;
     NeighborBatch& nb = tls_batch;
