@@ -3,6 +3,8 @@
 // other. They add the same terms in another order, so they agree to rounding, not to the bit.
 #include <gtest/gtest.h>
 
+#include <Eigen/Cholesky>
+
 #include <cmath>
 #include <cstring>
 #include <random>
@@ -10,6 +12,7 @@
 #include <vector>
 
 #include "surfel/surface/fit_kernels.h"
+#include "surfel/surface/ldlt6.h"
 #include "surfel/surface/poly_fit.h"
 
 namespace surfel {
@@ -216,6 +219,41 @@ TEST(FitKernels, GatherWithinIsPushWithinToTheBit) {
             }
         }
     }
+}
+
+// The 6x6 solve of the degree-2 fits: Eigen::LDLT's D, success and solution to the bit, on the
+// normal equations of random weighted samples (3 to 120 of them: singular ones included), with
+// PolyFit's acceptance (info() == Success and a conditioned D) deciding which solutions count.
+TEST(FitKernels, SolveLdlt6IsEigensLdltToTheBit) {
+    std::mt19937_64 rng(3);
+    std::normal_distribution<double> g;
+    int compared = 0;
+    for (int it = 0; it < 20000; ++it) {
+        Eigen::Matrix<double, 6, 6> M = Eigen::Matrix<double, 6, 6>::Zero();
+        Eigen::Matrix<double, 6, 1> b = Eigen::Matrix<double, 6, 1>::Zero();
+        const int n = 3 + it % 118;
+        const double scale = it % 3 == 0 ? 4.0 : 1.0;  // the 1/h-scaled coordinates reach a few units
+        for (int j = 0; j < n; ++j) {
+            const double x = scale * g(rng), y = g(rng), w = std::abs(g(rng)), z = 0.1 * g(rng);
+            Eigen::Matrix<double, 6, 1> t;
+            t << 1, x, y, x * x, x * y, y * y;
+            M += w * t * t.transpose();
+            b += w * z * t;
+        }
+        const Eigen::LDLT<Eigen::Matrix<double, 6, 6>> ldlt(M);
+        const Eigen::Matrix<double, 6, 1> want_d = ldlt.vectorD();
+        double x[6], d[6];
+        const bool ok = SolveLdlt6(M.data(), b.data(), x, d);
+        ASSERT_EQ(ok, ldlt.info() == Eigen::Success) << "case " << it;
+        ASSERT_EQ(std::memcmp(d, want_d.data(), sizeof d), 0) << "case " << it;
+        if (!ok) continue;
+        const double mx = want_d.cwiseAbs().maxCoeff(), mn = want_d.minCoeff();
+        if (!(mn > 1e-10 * mx && mx > 0)) continue;
+        const Eigen::Matrix<double, 6, 1> want = ldlt.solve(b);
+        ASSERT_EQ(std::memcmp(x, want.data(), sizeof x), 0) << "case " << it;
+        ++compared;
+    }
+    EXPECT_GT(compared, 15000);
 }
 
 }  // namespace
