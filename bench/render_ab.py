@@ -6,13 +6,13 @@
 Each round runs every binary once (a fresh process, after one untimed warm-up round) on
 ../shared/data/bunny.ply with bench/regress's RENDER_ARGS, and prints per binary the median and
 minimum of the wall ms (fork to exit), the process CPU ms (user + system) and the render's own
-time_ms, with the load average before and after. For before/after comparisons of builds kept
+time_ms and setup_ms, with the load average before and after. For before/after comparisons of builds kept
 side by side (each binary with its image plugins beside it)."""
 import json, os, subprocess, sys, time, statistics
 ARGS = "--width 320 --height 250 --eye -0.0100,0.1080,0.3300 --target -0.0100,0.1080,-0.0014 --up 0,1,0 --fovy 30 --light dir:-0.4,-0.5,-1 --spp 1".split()
 bins = sys.argv[2:]; rounds = int(sys.argv[1])
 env = {k: v for k, v in os.environ.items() if k not in ("SURFEL_IMAGE_PLUGIN", "SURFEL_EXR_PLUGIN")}
-res = {b: {"wall": [], "cpu": [], "time_ms": []} for b in bins}
+res = {b: {"wall": [], "cpu": [], "time_ms": [], "setup_ms": []} for b in bins}
 print("load before", os.getloadavg())
 for r in range(rounds + 1):
     for b in bins:
@@ -22,7 +22,7 @@ for r in range(rounds + 1):
         wall = (time.perf_counter() - t) * 1000
         if r == 0: continue
         j = json.loads(out.decode().strip().splitlines()[-1])
-        res[b]["wall"].append(wall); res[b]["cpu"].append((ru.ru_utime + ru.ru_stime) * 1000); res[b]["time_ms"].append(j["time_ms"])
+        res[b]["wall"].append(wall); res[b]["cpu"].append((ru.ru_utime + ru.ru_stime) * 1000); res[b]["time_ms"].append(j["time_ms"]); res[b]["setup_ms"].append(j["setup_ms"])
 for b in bins:
     print(b, " ".join(f"{k} median {statistics.median(v):.0f} min {min(v):.0f}" for k, v in res[b].items()))
 print("load after", os.getloadavg())

@@ -2,8 +2,13 @@
 
 #include <Eigen/Eigenvalues>
 #include <algorithm>
+#include <future>
+#include <mutex>
 #include <cmath>
 #include <vector>
+#include <string>
+#include <cstdio>
+#include <cstdlib>
 
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
@@ -52,16 +57,43 @@ struct AaSurface::Impl {
     float max_scale = 0.0f;
     std::vector<Vec3f> weight_normals;  // normal-aware weights (normal_sigma > 0)
     std::unique_ptr<UniformGrid> grid;
+    // The grid's cell-sorted points as structure of arrays (dense grids: the superset's fill).
+    std::vector<float> sorted_x, sorted_y, sorted_z;
+    // The weight normals in the same order, x/y/z arrays (dense grid, normal-aware weights): they
+    // travel with the points through the superset and the gathers.
+    std::vector<float> sorted_nx, sorted_ny, sorted_nz;
     std::vector<CenterEntry> centers;
     // 0 empty, 1 being computed, 2 ready, 3 ready but undefined (no fit at that centre).
     std::unique_ptr<std::atomic<std::uint8_t>[]> center_state;
     std::uint64_t id = 0;  // this surface's key in the per-thread neighbour superset
     const fit_kernels::Kernels* kernels = &fit_kernels::Best();  // the fits' weighted sums
+    // Normal-aware weights on a cloud without normals: the estimation runs on its own thread from
+    // the constructor on (beside the rest of the setup and the caller's BVH build); the first
+    // evaluation waits for it and sorts the normals into grid order (AwaitNormals).
+    std::once_flag normals_once;
+    std::atomic<bool> normals_ready{false};
+    // Last, so that it is destroyed first: releasing it waits for the estimation, which writes
+    // weight_normals.
+    std::shared_future<void> normals_job;
     Impl(const PointCloud& c, const AaOptions& o) : cloud(c), opt(o) {}
 };
 
 namespace {
 thread_local NeighborBatch tls_batch;
+
+// A point rounded to float (the gathers' origin), and that float point widened back to double.
+// The rounding goes through memory the compiler cannot see into: GCC 12 (Debian 12's, from -O2)
+// may fold a vectorised (double)(float)x back to x (see CenterFit), and whether it does depended
+// on how much of the gather was inlined into FitAt, which moved 40 % of an image's pixels by up
+// to 2e-5 when the gather's loops moved into fit_kernels.
+Vec3f RoundToFloat(const Vec3d& r) {
+    volatile float v[3] = {static_cast<float>(r.x()), static_cast<float>(r.y()), static_cast<float>(r.z())};
+    return Vec3f(float(v[0]), float(v[1]), float(v[2]));
+}
+Vec3d Widen(const Vec3f& f) {
+    volatile float v[3] = {f.x(), f.y(), f.z()};
+    return Vec3d(double(v[0]), double(v[1]), double(v[2]));
+}
 
 // Ids of AaSurface objects (an address can be reused by a later surface; an id is not).
 std::atomic<std::uint64_t> next_surface_id{1};
@@ -150,6 +182,51 @@ AaSurface::AaSurface(const PointCloud& cloud, const AaOptions& options, const Pr
     AaOptions& o = impl_->opt;
     if (cloud.size() < 3) throw Error(ErrorCode::kInvalidArgument, "the surface needs at least 3 points, got " + std::to_string(cloud.size()));
     o.Validate();
+    // The normals of the normal-aware weights: the cloud's, else estimated (the longest part of
+    // the setup, with serial stretches: the kd-tree build, the orientation's spanning tree) on
+    // another thread while this one sets up the rest (sampling density, grid, scales) and the
+    // caller builds its BVH; the first evaluation waits for them (AwaitNormals). Each part writes
+    // its own members and neither depends on the thread count.
+    if (o.normal_sigma > 0) {
+        if (cloud.has_normals()) {
+            impl_->weight_normals = cloud.normals;
+        } else {
+            Impl* im = impl_.get();
+            impl_->normals_job = std::async(std::launch::async, [im, progress] {
+                const KdTree tree(im->cloud.positions);
+                // Only the caller's cancellation: its fractions are the caller's whole job's.
+                const ProgressFn poll = [&progress](double) { return !progress || progress(0.0); };
+                im->weight_normals = EstimateNormals(tree, {}, poll).normals;
+            }).share();
+        }
+    }
+    SetUpScales();
+    if (!impl_->normals_job.valid()) AwaitNormals();
+}
+
+void AaSurface::AwaitNormals() const {
+    if (impl_->normals_ready.load(std::memory_order_acquire)) return;
+    // (An exception of the estimation, e.g. Error(kCancelled), leaves the flag unset: every later
+    // call rethrows it from the shared future.)
+    std::call_once(impl_->normals_once, [this] {
+        Impl& im = *impl_;
+        if (im.normals_job.valid()) im.normals_job.get();
+        if (im.grid->dense() && !im.weight_normals.empty()) {
+            const std::size_t n = im.cloud.size();
+            const std::uint32_t* order = im.grid->sorted_indices();
+            for (auto* v : {&im.sorted_nx, &im.sorted_ny, &im.sorted_nz}) v->resize(n);
+            for (std::size_t i = 0; i < n; ++i) {
+                const Vec3f& nrm = im.weight_normals[order[i]];
+                im.sorted_nx[i] = nrm.x(), im.sorted_ny[i] = nrm.y(), im.sorted_nz[i] = nrm.z();
+            }
+        }
+        im.normals_ready.store(true, std::memory_order_release);
+    });
+}
+
+void AaSurface::SetUpScales() {
+    const PointCloud& cloud = impl_->cloud;
+    AaOptions& o = impl_->opt;
     const SamplingDensity density = ComputeSamplingDensity(cloud.positions, o.ball_k);
     impl_->ball_radius = density.radius;
     if (o.h == 0) o.h = DefaultScale(density);
@@ -183,6 +260,13 @@ AaSurface::AaSurface(const PointCloud& cloud, const AaOptions& options, const Pr
             }
         });
     }
+    if (impl_->grid->dense()) {
+        const std::size_t n = cloud.size();
+        const Vec3f* p = impl_->grid->sorted_points();
+        for (auto* v : {&impl_->sorted_x, &impl_->sorted_y, &impl_->sorted_z}) v->resize(n);
+        for (std::size_t i = 0; i < n; ++i)
+            impl_->sorted_x[i] = p[i].x(), impl_->sorted_y[i] = p[i].y(), impl_->sorted_z[i] = p[i].z();
+    }
     if (o.boundary > 0) {
         const float med = density.median_spacing > 0 ? density.median_spacing : 1.0f;
         impl_->relative_spacing.resize(cloud.size());
@@ -193,23 +277,15 @@ AaSurface::AaSurface(const PointCloud& cloud, const AaOptions& options, const Pr
     if (o.ball_h > 0)
         for (std::size_t i = 0; i < cloud.size(); ++i)
             impl_->ball_radius[i] = std::max(impl_->ball_radius[i], o.ball_h * PointScale(static_cast<std::uint32_t>(i)));
-    if (o.normal_sigma > 0) {
-        if (cloud.has_normals()) {
-            impl_->weight_normals = cloud.normals;
-        } else {
-            const KdTree tree(cloud.positions);
-            // Only the caller's cancellation: its fractions are the caller's whole job's.
-            const ProgressFn poll = [&progress](double) { return !progress || progress(0.0); };
-            impl_->weight_normals = EstimateNormals(tree, {}, poll).normals;
-        }
-    }
     impl_->id = next_surface_id.fetch_add(1, std::memory_order_relaxed);
     impl_->centers.resize(cloud.size());
     impl_->center_state.reset(new std::atomic<std::uint8_t>[cloud.size()]);
     for (std::size_t i = 0; i < cloud.size(); ++i) impl_->center_state[i].store(0, std::memory_order_relaxed);
 }
 
-AaSurface::~AaSurface() = default;
+AaSurface::~AaSurface() {
+    if (impl_->normals_job.valid()) impl_->normals_job.wait();
+}
 
 float AaSurface::h() const { return impl_->opt.h; }
 float AaSurface::precision() const { return impl_->opt.precision; }
@@ -237,7 +313,10 @@ float AaSurface::BoundaryScale(std::uint32_t i) const {
     cached.store(v, std::memory_order_relaxed);
     return v;
 }
-const std::vector<Vec3f>& AaSurface::WeightNormals() const { return impl_->weight_normals; }
+const std::vector<Vec3f>& AaSurface::WeightNormals() const {
+    AwaitNormals();
+    return impl_->weight_normals;
+}
 
 namespace {
 // The points within `reach` of a centre c, in the grid's cell order, as structure of arrays: a
@@ -254,42 +333,49 @@ struct Superset {
     float reach = 0.0f;
     std::vector<float> x, y, z;
     std::vector<std::uint32_t> index;
-    std::vector<float> d2;            // scratch: squared distances to the current gather's origin
-    std::vector<std::uint32_t> keep;  // scratch: positions of the accepted points
+    std::vector<float> nx, ny, nz;  // the points' weight normals (when the surface has them)
     std::size_t n = 0;
 };
 thread_local Superset tls_superset;
 
+// The weight normals of the last gather's neighbours, in its order (normal-aware weights).
+struct GatheredNormals {
+    std::vector<float> x, y, z;
+};
+thread_local GatheredNormals tls_normals;
+
+// The sorted points and, when the surface has weight normals, their normals (else null), as
+// x/y/z arrays: what the superset is filled from.
+struct SortedPoints {
+    const float* p[3];
+    const float* n[3];
+    bool normals;
+};
+
 // How far (in units of h) the superset reaches beyond the gather that filled it.
 constexpr float kSupersetMargin = 1.0f;
 
-// Fills `s` with the points within `reach` of c, in ascending cell order (dense grid only).
-void FillSuperset(const UniformGrid& grid, std::uint64_t owner, const Vec3f& c, float reach, Superset& s) {
+// Fills `s` with the points within `reach` of c, in ascending cell order (dense grid only), with
+// their normals when `sorted` has them, eight candidates at a time (SelectWithin).
+void FillSuperset(const UniformGrid& grid, const SortedPoints& sorted, const fit_kernels::Kernels& kernels,
+                  std::uint64_t owner, const Vec3f& c, float reach, Superset& s) {
     s.owner = 0;
     s.n = 0;
     const float r2 = reach * reach;
-    const Vec3f* pts = grid.sorted_points();
     const std::uint32_t* idx = grid.sorted_indices();
     grid.ForEachCandidateRun(c, reach, [&](std::uint32_t first, std::uint32_t last) {
-        const std::size_t need = s.n + (last - first);
+        const std::size_t need = s.n + (last - first) + 8;
         if (need > s.index.size()) {
             const std::size_t cap = std::max<std::size_t>(1024, 2 * need);
-            for (auto* v : {&s.x, &s.y, &s.z}) v->resize(cap);
+            for (auto* v : {&s.x, &s.y, &s.z, &s.nx, &s.ny, &s.nz}) v->resize(cap);
             s.index.resize(cap);
         }
-        std::size_t n = s.n;
-        float *X = s.x.data(), *Y = s.y.data(), *Z = s.z.data();
-        std::uint32_t* I = s.index.data();
-        for (std::uint32_t j = first; j < last; ++j) {
-            const Vec3f p = pts[j];
-            const Vec3f e = p - c;
-            X[n] = p.x();
-            Y[n] = p.y();
-            Z[n] = p.z();
-            I[n] = idx[j];
-            n += e.squaredNorm() <= r2 ? 1 : 0;
-        }
-        s.n = n;
+        const float* const carry[3] = {sorted.n[0] + first, sorted.n[1] + first, sorted.n[2] + first};
+        float* const carry_out[3] = {s.nx.data() + s.n, s.ny.data() + s.n, s.nz.data() + s.n};
+        s.n += kernels.select_within(sorted.p[0] + first, sorted.p[1] + first, sorted.p[2] + first, idx + first,
+                                     sorted.normals ? carry : nullptr, last - first, c.x(), c.y(), c.z(), r2,
+                                     s.x.data() + s.n, s.y.data() + s.n, s.z.data() + s.n, s.index.data() + s.n,
+                                     carry_out);
     });
     s.c = c;
     s.reach = reach;
@@ -300,49 +386,47 @@ void FillSuperset(const UniformGrid& grid, std::uint64_t owner, const Vec3f& c, 
 // differences), relative to o: the first step of both FitAt (eq. 8, 9) and Evaluate (eq. 1-4).
 // From the thread's superset when it covers the ball (dense grids), else from the grid. `h`:
 // how far beyond the gather a new superset reaches (kSupersetMargin x h).
-void Gather(const UniformGrid& grid, std::uint64_t owner, const Vec3f& o, float radius, double h, NeighborBatch& nb,
+// With `sorted.normals`, the neighbours' weight normals go to tls_normals (`normals`: all of them,
+// for the grid walk's path).
+void Gather(const UniformGrid& grid, const SortedPoints& sorted, const std::vector<Vec3f>& normals,
+            std::uint64_t owner, const Vec3f& o, float radius, double h, NeighborBatch& nb,
             const fit_kernels::Kernels& kernels) {
     nb.clear();
     if (grid.dense()) {
         Superset& s = tls_superset;
         // Covered when |o - c| + radius <= reach, less a hair for the rounding of these floats.
         const auto covers = [&] { return s.owner == owner && (o - s.c).norm() + radius <= s.reach * (1.0f - 1e-4f); };
-        if (!covers()) FillSuperset(grid, owner, o, radius + kSupersetMargin * static_cast<float>(h), s);
-        // Three passes: the squared distances (vectorised), the accepted positions (a
-        // branch-free compaction), then the accepted offsets. d2 is Eigen's squaredNorm of the
-        // float offset, x^2 + (y^2 + z^2), as PushWithin computes it, so the test and the
-        // stored values are PushWithin's to the bit.
+        if (!covers()) FillSuperset(grid, sorted, kernels, owner, o, radius + kSupersetMargin * static_cast<float>(h), s);
+        // The candidates within `radius` of o, their float offsets and distances: d2 is Eigen's
+        // squaredNorm of the float offset, x^2 + (y^2 + z^2), as PushWithin computes it, so the
+        // test and the stored values are PushWithin's to the bit (fit_kernels.h's GatherWithin).
         const std::size_t m = s.n;
-        if (s.d2.size() < m) s.d2.resize(s.index.size()), s.keep.resize(s.index.size());
-        const float r2 = radius * radius;
-        const float ox = o.x(), oy = o.y(), oz = o.z();
-        const float *SX = s.x.data(), *SY = s.y.data(), *SZ = s.z.data();
-        float* SD = s.d2.data();
-        kernels.squared_distances(SX, SY, SZ, m, ox, oy, oz, SD);
-        std::uint32_t* K = s.keep.data();
-        std::size_t n = 0;
-        for (std::size_t j = 0; j < m; ++j) {
-            K[n] = static_cast<std::uint32_t>(j);
-            n += SD[j] <= r2 ? 1 : 0;
-        }
-        nb.Reserve(n);
-        const std::uint32_t* SI = s.index.data();
-        float *X = nb.x.data(), *Y = nb.y.data(), *Z = nb.z.data(), *D = nb.d2.data();
-        std::uint32_t* I = nb.index.data();
-        for (std::size_t k = 0; k < n; ++k) {
-            const std::uint32_t j = K[k];
-            X[k] = SX[j] - ox;
-            Y[k] = SY[j] - oy;
-            Z[k] = SZ[j] - oz;
-            D[k] = SD[j];
-            I[k] = SI[j];
-        }
+        nb.Reserve(m + 8);
+        GatheredNormals& gn = tls_normals;
+        if (sorted.normals && gn.x.size() < m + 8)
+            for (auto* v : {&gn.x, &gn.y, &gn.z}) v->resize(std::max<std::size_t>(1024, 2 * (m + 8)));
+        const float* const carry[3] = {s.nx.data(), s.ny.data(), s.nz.data()};
+        float* const carry_out[3] = {gn.x.data(), gn.y.data(), gn.z.data()};
+        const std::size_t n = kernels.gather_within(s.x.data(), s.y.data(), s.z.data(), s.index.data(),
+                                                    sorted.normals ? carry : nullptr, m, o.x(), o.y(), o.z(),
+                                                    radius * radius, nb.x.data(), nb.y.data(), nb.z.data(),
+                                                    nb.d2.data(), nb.index.data(), carry_out);
         nb.Resize(n);
     } else {
         grid.ForEachCandidateRun(o, radius, [&](std::uint32_t first, std::uint32_t last) {
             nb.PushWithin(grid.sorted_points() + first, grid.sorted_indices() + first, last - first, o,
                           radius * radius);
         });
+        if (!normals.empty()) {
+            GatheredNormals& gn = tls_normals;
+            const std::size_t n = nb.size();
+            if (gn.x.size() < n)
+                for (auto* v : {&gn.x, &gn.y, &gn.z}) v->resize(std::max<std::size_t>(1024, 2 * n));
+            for (std::size_t k = 0; k < n; ++k) {
+                const Vec3f& nrm = normals[nb.index[k]];
+                gn.x[k] = nrm.x(), gn.y[k] = nrm.y(), gn.z[k] = nrm.z();
+            }
+        }
     }
 }
 
@@ -355,19 +439,22 @@ template <typename Impl>
 WeightedMoments GatherWeighted(const Impl& im, const Vec3f& o, float cutoff, std::int64_t ball, NeighborBatch& nb) {
     const AaOptions& opt = im.opt;
     const float H = im.scale.empty() ? opt.h : ball >= 0 ? im.reach[std::size_t(ball)] : im.max_scale;
-    Gather(*im.grid, im.id, o, cutoff * H, H, nb, *im.kernels);
+    const SortedPoints sorted{{im.sorted_x.data(), im.sorted_y.data(), im.sorted_z.data()},
+                              {im.sorted_nx.data(), im.sorted_ny.data(), im.sorted_nz.data()},
+                              !im.sorted_nx.empty()};
+    Gather(*im.grid, sorted, im.weight_normals, im.id, o, cutoff * H, H, nb, *im.kernels);
     if (nb.size() < 3) return {};
     // nb.Weights(opt.h), through the kernels.
     if (im.scale.empty()) im.kernels->gauss_weights(nb.d2.data(), static_cast<float>(1.0 / (double(opt.h) * double(opt.h))), nb.w.data(), nb.size());
     else nb.WeightsPerPoint(im.inv_h2.data(), cutoff * cutoff);
     if (ball >= 0 && !im.weight_normals.empty()) {
+        // w_j *= exp(-c^2), c = (1 - n_j . n_ball) / sigma, through the kernels (fit_kernels.h).
+        // The neighbours' normals came with them (tls_normals, filled by Gather).
         const Vec3f nr = im.weight_normals[std::size_t(ball)];
-        const float inv = 1.0f / opt.normal_sigma;
-        const std::size_t n = nb.size();
-        for (std::size_t j = 0; j < n; ++j) {
-            const float c = (1.0f - im.weight_normals[nb.index[j]].dot(nr)) * inv;
-            nb.w[j] *= std::exp(-c * c);
-        }
+        const float ref[3] = {nr.x(), nr.y(), nr.z()};
+        const GatheredNormals& gn = tls_normals;
+        im.kernels->normal_factors(gn.x.data(), gn.y.data(), gn.z.data(), nb.size(), ref, 1.0f / opt.normal_sigma,
+                                   nb.w.data());
     }
     double m[10];
     im.kernels->moments(nb.x.data(), nb.y.data(), nb.z.data(), nb.w.data(), nb.size(), m);
@@ -377,13 +464,14 @@ WeightedMoments GatherWeighted(const Impl& im, const Vec3f& o, float cutoff, std
 }  // namespace
 
 bool AaSurface::FitAt(const Vec3d& r, Fit* fit, float cutoff, bool attributes, std::uint32_t ball) const {
+    AwaitNormals();
     const AaOptions& o = impl_->opt;
     const PointCloud& cloud = impl_->cloud;
     NeighborBatch& nb = tls_batch;
     fit->valid = false;
     // Step 1, support plane: B = sum theta_j (p_j - r)(p_j - r)^T (eq. 8, 9), about r rounded to
     // float (within 1e-7 relative of r; the frame's origin is that point).
-    const Vec3f rf = r.cast<float>();
+    const Vec3f rf = RoundToFloat(r);
     const WeightedMoments wm = GatherWeighted(*impl_, rf, cutoff, ball, nb);
     if (!(wm.w > 1e-12)) return false;
     const std::size_t m = nb.size();
@@ -391,15 +479,23 @@ bool AaSurface::FitAt(const Vec3d& r, Fit* fit, float cutoff, bool attributes, s
     es.computeDirect(wm.Second());
     const Vec3d lambda = es.eigenvalues();
     if (!(lambda[0] < o.normal_ratio * lambda[1])) return false;  // normal not well defined
-    fit->frame = LocalFrame::FromNormal(rf.cast<double>(), es.eigenvectors().col(0));
-    fit->mean = rf.cast<double>() + Vec3d(wm.x, wm.y, wm.z) / wm.w;
+    fit->frame = LocalFrame::FromNormal(Widen(rf), es.eigenvectors().col(0));
+    fit->mean = Widen(rf) + Vec3d(wm.x, wm.y, wm.z) / wm.w;
     // Step 2, polynomial: minimise sum (a_i(x_j, y_j) - f_j)^2 theta_j (eq. 10).
-    nb.ToLocal(Vec3d::Zero(), fit->frame.u, fit->frame.v, fit->frame.n);
+    const double frame[12] = {0, 0, 0, fit->frame.u.x(), fit->frame.u.y(), fit->frame.u.z(),
+                              fit->frame.v.x(), fit->frame.v.y(), fit->frame.v.z(),
+                              fit->frame.n.x(), fit->frame.n.y(), fit->frame.n.z()};
+    impl_->kernels->to_local(nb.x.data(), nb.y.data(), nb.z.data(), m, frame, nb.lx.data(), nb.ly.data(), nb.lz.data());
     PolyFit pf(o.degree, o.h);
     double sums[21];
     impl_->kernels->poly_sums(nb.lx.data(), nb.ly.data(), nb.lz.data(), nb.w.data(), m, pf.inv_h(), sums);
     pf.AddSums(sums);
     if (!pf.Solve(&fit->g)) return false;
+    if (static FILE* dbgf = getenv("SURFEL_FITLOG") ? fopen(getenv("SURFEL_FITLOG"), "w") : nullptr; dbgf) {
+        double sx = 0, sy = 0, sz = 0, sw = 0, lx = 0, ly = 0, lz = 0; unsigned long long si = 0;
+        for (std::size_t j = 0; j < m; ++j) { sx += nb.x[j]; sy += nb.y[j]; sz += nb.z[j]; sw += nb.w[j]; si = si * 31 + nb.index[j]; lx += nb.lx[j]; ly += nb.ly[j]; lz += nb.lz[j]; }
+        fprintf(dbgf, "%a %a %a %zu | %a %a %a %a %llu | %a %a %a | %a %a %a %a %a %a | %a %a %a\n", r.x(), r.y(), r.z(), m, sx, sy, sz, sw, si, lx, ly, lz, fit->g.c[0], fit->g.c[1], fit->g.c[2], fit->g.c[3], fit->g.c[4], fit->g.c[5], fit->frame.n.x(), fit->frame.n.y(), fit->frame.n.z());
+    }
     fit->valid = true;
     if (!attributes) return true;
     fit->normal_ref = WeightedNormal(cloud, nb);
@@ -416,16 +512,17 @@ bool AaSurface::FitAt(const Vec3d& r, Fit* fit, float cutoff, bool attributes, s
 }
 
 AaEvaluation AaSurface::Evaluate(const Vec3d& x) const {
+    AwaitNormals();
     const AaOptions& o = impl_->opt;
     AaEvaluation ev;
     NeighborBatch& nb = tls_batch;
     // eq. 1-4: the weighted mean a(x) and the covariances in directions through x.
-    const Vec3f xf = x.cast<float>();
+    const Vec3f xf = RoundToFloat(x);
     const WeightedMoments wm = GatherWeighted(*impl_, xf, o.cutoff, -1, nb);
     if (!(wm.w > 1e-12)) return ev;
     Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es;
     es.computeDirect(wm.Second());
-    ev.a = xf.cast<double>() + Vec3d(wm.x, wm.y, wm.z) / wm.w;
+    ev.a = Widen(xf) + Vec3d(wm.x, wm.y, wm.z) / wm.w;
     ev.n = es.eigenvectors().col(0).normalized();
     if (WeightedNormal(impl_->cloud, nb).dot(ev.n) < 0) ev.n = -ev.n;
     ev.f = ev.n.dot(ev.a - x);
@@ -484,6 +581,8 @@ std::optional<AaHit> AaSurface::IntersectInBall(std::uint32_t ball, const Vec3d&
     const double rho = impl_->ball_radius[ball];
     const double rho2 = rho * rho * (1.0 + 1e-9);
     auto inside = [&](double t) { return t >= tmin && t <= tmax && (o + t * d - center).squaredNorm() <= rho2; };
+    if (static FILE* dbgb = getenv("SURFEL_FITLOG") ? fopen((std::string(getenv("SURFEL_FITLOG")) + ".b").c_str(), "w") : nullptr; dbgb)
+        fprintf(dbgb, "%u %a %a %a %a %a %a %a %a %a\n", ball, o.x(), o.y(), o.z(), d.x(), d.y(), d.z(), tmin, tmax, known_hit);
 
     // r_0: the ray against the ball centre's polynomial (section 5), cached per ball.
     // The same-sheet test below, decided before the centre fit: any root in [tmin, tmax] would

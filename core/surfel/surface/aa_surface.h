@@ -126,10 +126,13 @@ struct AaCounters {
 class AaSurface {
 public:
     /// Throws Error(kInvalidArgument) when `options` fail AaOptions::Validate(), the cloud has
-    /// fewer than 3 points, or h = 0 cannot be derived (all points coincide). `progress` is polled
-    /// (with fraction 0) during the longest part of the setup, the normal estimation that the
-    /// normal-aware weights need for a cloud without normals; returning false throws
-    /// Error(kCancelled).
+    /// fewer than 3 points, or h = 0 cannot be derived (all points coincide). The normal
+    /// estimation that the normal-aware weights need for a cloud without normals (the longest
+    /// part of the setup) runs on its own thread from here on, beside the rest of the setup and
+    /// whatever the caller does next (the renderer builds its BVH); the first evaluation (or
+    /// WeightNormals()) waits for it. `progress` (a copy of it is kept until then; it must be
+    /// callable from any thread) is polled with fraction 0 during that estimation; returning
+    /// false makes the first evaluation throw Error(kCancelled).
     explicit AaSurface(const PointCloud& cloud, const AaOptions& options = {}, const ProgressFn& progress = {});
     ~AaSurface();
 
@@ -146,8 +149,8 @@ public:
     /// mean sample spacing within 2h of p_i over the median spacing; PointScale(i) when the
     /// boundary is off. Computed on first use and cached.
     float BoundaryScale(std::uint32_t i) const;
-    /// The normals the normal-aware weights use (the cloud's or estimated); empty when
-    /// options().normal_sigma = 0.
+    /// The normals the normal-aware weights use (the cloud's or estimated; waits for the
+    /// estimation); empty when options().normal_sigma = 0.
     const std::vector<Vec3f>& WeightNormals() const;
 
     /// Evaluates a(x), n(x), f(x) (section 3).
@@ -184,6 +187,12 @@ private:
     /// The ball centre's support plane and polynomial (no attributes), from the per-ball cache;
     /// false when that fit is not defined.
     bool CenterFit(std::uint32_t ball, Fit* out, AaCounters* counters) const;
+    /// The constructor's setup besides the weight normals: ball radii, h, precision, grid, scales,
+    /// caches (run beside the normal estimation).
+    void SetUpScales();
+    /// Waits for the weight normals (estimated on another thread from the constructor on) and
+    /// puts them in grid order, once; rethrows what the estimation threw.
+    void AwaitNormals() const;
     struct Impl;
     std::unique_ptr<Impl> impl_;
 };

@@ -16,6 +16,7 @@
 /// SURFEL_FIT_KERNELS=baseline picks the baseline build on any CPU.
 
 #include <cstddef>
+#include <cstdint>
 
 namespace surfel::fit_kernels {
 
@@ -43,6 +44,32 @@ using SquaredDistancesAroundFn = void (*)(const float* x, const float* y, const 
 using ToLocalFn = void (*)(const float* x, const float* y, const float* z, std::size_t n, const double* frame,
                            double* lx, double* ly, double* lz);
 
+/// The normal-aware weights (AaOptions::normal_sigma): w[j] *= exp(-c^2), c = (1 - n_j . ref) * inv,
+/// n_j = (nx, ny, nz)[j] the neighbour's normal, in float, the dot as Eigen's x + (y + z), exp as
+/// the C library's expf. The AVX2 build computes eight at once with glibc's expf algorithm (the
+/// FMA variant glibc itself runs on such a CPU) and is chosen only where it reproduces this
+/// process's expf to the bit (NormalFactorsVectorised); elsewhere each factor calls expf.
+using NormalFactorsFn = void (*)(const float* nx, const float* ny, const float* nz, std::size_t n, const float* ref,
+                                 float inv, float* w);
+
+/// The neighbours of a gather among candidates: for each j with d2 = |(X, Y, Z)[j] - o|^2 <= r2
+/// (float, as SquaredDistances), in order, appends the offset (X, Y, Z)[j] - o to (out_x, out_y,
+/// out_z), d2 to out_d2, I[j] to out_i and, when `carry` is not null, carry[c][j] to
+/// carry_out[c] (c = 0, 1, 2: three float attributes that travel with the points, e.g. normals);
+/// returns how many. The outputs need room for n + 8 entries (the AVX2 build stores eight at a
+/// time). Data movement after elementwise arithmetic: the same bits in both builds.
+using GatherWithinFn = std::size_t (*)(const float* X, const float* Y, const float* Z, const std::uint32_t* I,
+                                       const float* const* carry, std::size_t n, float ox, float oy, float oz,
+                                       float r2, float* out_x, float* out_y, float* out_z, float* out_d2,
+                                       std::uint32_t* out_i, float* const* carry_out);
+/// GatherWithin's filter keeping the points themselves: for each j with |(X, Y, Z)[j] - o|^2 <= r2
+/// (the same float test), in order, appends (X, Y, Z)[j], I[j] and the carried attributes;
+/// returns how many. Room for n + 8 entries.
+using SelectWithinFn = std::size_t (*)(const float* X, const float* Y, const float* Z, const std::uint32_t* I,
+                                       const float* const* carry, std::size_t n, float ox, float oy, float oz,
+                                       float r2, float* out_x, float* out_y, float* out_z, std::uint32_t* out_i,
+                                       float* const* carry_out);
+
 struct Kernels {
     MomentsFn moments;
     PolySumsFn poly_sums;
@@ -50,6 +77,9 @@ struct Kernels {
     GaussWeightsFn gauss_weights;
     SquaredDistancesAroundFn squared_distances_around;
     ToLocalFn to_local;
+    NormalFactorsFn normal_factors;
+    GatherWithinFn gather_within;
+    SelectWithinFn select_within;
     const char* isa;  ///< "avx2" or "baseline"
 };
 
@@ -57,5 +87,8 @@ struct Kernels {
 const Kernels& Best();
 /// The baseline build (any x86-64).
 const Kernels& Baseline();
+/// Whether Best().normal_factors is the eight-wide one (AVX2, FMA, and its exp agreed with
+/// expf on a probe of arguments when the kernels were chosen).
+bool NormalFactorsVectorised();
 
 }  // namespace surfel::fit_kernels

@@ -19,24 +19,42 @@ void SquaredDistancesAround(const float* x, const float* y, const float* z, std:
                             double cz, float* out);
 void ToLocal(const float* x, const float* y, const float* z, std::size_t n, const double* f, double* lx, double* ly,
              double* lz);
+void NormalFactors(const float* NX, const float* NY, const float* NZ, std::size_t n, const float* ref, float inv,
+                   float* w);
+void NormalFactorsFma(const float* NX, const float* NY, const float* NZ, std::size_t n, const float* ref, float inv,
+                      float* w);
+bool ExpMatchesLibm();
+std::size_t GatherWithinPacked(const float* X, const float* Y, const float* Z, const std::uint32_t* I,
+                               const float* const* C, std::size_t n, float ox, float oy, float oz, float r2, float* OX,
+                               float* OY, float* OZ, float* OD, std::uint32_t* OI, float* const* OC);
+std::size_t SelectWithinPacked(const float* X, const float* Y, const float* Z, const std::uint32_t* I,
+                               const float* const* C, std::size_t n, float ox, float oy, float oz, float r2, float* OX,
+                               float* OY, float* OZ, std::uint32_t* OI, float* const* OC);
 }  // namespace avx2
 
 const Kernels& Baseline() {
     static const Kernels k{&baseline::Moments, &baseline::PolySums, &baseline::SquaredDistances,
                            &baseline::GaussWeights, &baseline::SquaredDistancesAround, &baseline::ToLocal,
-                           "baseline"};
+                           &baseline::NormalFactors, &baseline::GatherWithin, &baseline::SelectWithin, "baseline"};
     return k;
 }
 
 const Kernels& Best() {
     static const Kernels& best = []() -> const Kernels& {
-        static const Kernels k{&avx2::Moments,      &avx2::PolySums,
-                               &avx2::SquaredDistances, &avx2::GaussWeights,
-                               &avx2::SquaredDistancesAround, &avx2::ToLocal,
-                               "avx2"};
-        return PickKernelBuild() == KernelBuild::kAvx2 ? k : Baseline();
+        static Kernels k{&avx2::Moments,      &avx2::PolySums,
+                         &avx2::SquaredDistances, &avx2::GaussWeights,
+                         &avx2::SquaredDistancesAround, &avx2::ToLocal,
+                         &avx2::NormalFactors, &avx2::GatherWithinPacked, &avx2::SelectWithinPacked, "avx2"};
+        if (PickKernelBuild() != KernelBuild::kAvx2) return Baseline();
+#if defined(__x86_64__) || defined(__i386__)
+        // The eight-wide exp only where it is this process's expf to the bit.
+        if (__builtin_cpu_supports("fma") && avx2::ExpMatchesLibm()) k.normal_factors = &avx2::NormalFactorsFma;
+#endif
+        return k;
     }();
     return best;
 }
+
+bool NormalFactorsVectorised() { return Best().normal_factors == &avx2::NormalFactorsFma; }
 
 }  // namespace surfel::fit_kernels

@@ -10,7 +10,6 @@
 #include <limits>
 #include <numbers>
 #include <numeric>
-#include <queue>
 
 #include "surfel/base/error.h"
 #include "surfel/base/validate.h"
@@ -355,21 +354,52 @@ std::size_t OrientOverGraph(std::span<const Vec3f> pts, std::vector<Vec3f>& norm
     }
 
     // Prim's algorithm from each root, cost 1 - |ni . nj| + w tilt; ties broken by index (deterministic).
-    struct Edge {
-        float cost;
-        std::uint32_t to, from;
-        bool operator>(const Edge& o) const {
-            return cost > o.cost || (cost == o.cost && (to > o.to || (to == o.to && from > o.from)));
-        }
-    };
+    // The frontier is an indexed heap of points keyed by (best cost, index), each point once, its
+    // key lowered when a cheaper edge reaches it: the order of a heap of every improving edge
+    // (cost, to, from) with stale entries skipped, since a point's least entry is its best edge
+    // and `to` is unique per point, with a fraction of the heap traffic.
     std::vector<char> visited(n, 0);
-    std::priority_queue<Edge, std::vector<Edge>, std::greater<Edge>> heap;
-    ProgressTracker tracker(progress, static_cast<double>(n), "normal orientation");
-    std::size_t flips = 0, done = 0;
-    // Only edges that improve on the best one known for their endpoint enter the heap (the same
-    // tree as pushing every edge, with the same tie-break, but far less heap traffic).
     std::vector<float> best(n, std::numeric_limits<float>::infinity());
     std::vector<std::uint32_t> best_from(n, UINT32_MAX);
+    std::vector<std::uint32_t> heap;                   // points, a binary min-heap by (best, index)
+    std::vector<std::uint32_t> slot(n, UINT32_MAX);    // each point's place in `heap`
+    const auto before = [&](std::uint32_t a, std::uint32_t b) { return best[a] < best[b] || (best[a] == best[b] && a < b); };
+    const auto place = [&](std::size_t i, std::uint32_t v) {
+        heap[i] = v;
+        slot[v] = static_cast<std::uint32_t>(i);
+    };
+    const auto sift_up = [&](std::size_t i) {
+        const std::uint32_t v = heap[i];
+        while (i > 0) {
+            const std::size_t up = (i - 1) / 2;
+            if (!before(v, heap[up])) break;
+            place(i, heap[up]);
+            i = up;
+        }
+        place(i, v);
+    };
+    const auto pop = [&] {
+        const std::uint32_t top = heap[0];
+        slot[top] = UINT32_MAX;
+        const std::uint32_t v = heap.back();
+        heap.pop_back();
+        if (!heap.empty()) {
+            std::size_t i = 0;
+            const std::size_t size = heap.size();
+            for (;;) {
+                std::size_t c = 2 * i + 1;
+                if (c >= size) break;
+                if (c + 1 < size && before(heap[c + 1], heap[c])) ++c;
+                if (!before(heap[c], v)) break;
+                place(i, heap[c]);
+                i = c;
+            }
+            place(i, v);
+        }
+        return top;
+    };
+    ProgressTracker tracker(progress, static_cast<double>(n), "normal orientation");
+    std::size_t flips = 0, done = 0;
     // Each edge's cost, computed in parallel before the serial propagation: Hoppe's
     // 1 - |ni . nj| plus the edge's tilt out of the two tangent planes (an edge across a thin part
     // joins antiparallel normals, which the plain cost finds cheapest). It does not depend on the
@@ -394,7 +424,12 @@ std::size_t OrientOverGraph(std::span<const Vec3f> pts, std::vector<Vec3f>& norm
             if (cost < best[v] || (cost == best[v] && u < best_from[v])) {
                 best[v] = cost;
                 best_from[v] = u;
-                heap.push({cost, v, u});
+                if (slot[v] == UINT32_MAX) {
+                    heap.push_back(v);
+                    sift_up(heap.size() - 1);
+                } else {
+                    sift_up(slot[v]);  // a lower key (or the same key from a lower `from`)
+                }
             }
         }
     };
@@ -407,15 +442,13 @@ std::size_t OrientOverGraph(std::span<const Vec3f> pts, std::vector<Vec3f>& norm
         visited[root] = 1;
         push_edges(root);
         while (!heap.empty()) {
-            const Edge e = heap.top();
-            heap.pop();
-            if (visited[e.to]) continue;
-            visited[e.to] = 1;
-            if (normals[e.from].dot(normals[e.to]) < 0) {
-                normals[e.to] = -normals[e.to];
-                negated[e.to] ^= 1;
+            const std::uint32_t to = pop(), from = best_from[to];
+            visited[to] = 1;
+            if (normals[from].dot(normals[to]) < 0) {
+                normals[to] = -normals[to];
+                negated[to] ^= 1;
             }
-            push_edges(e.to);
+            push_edges(to);
             if ((++done & 0xFFFF) == 0) tracker.Advance(65536.0);
         }
         const std::span<const std::uint32_t> comp(members.data() + c.first, c.count);

@@ -13,6 +13,7 @@
 #include <vector>
 
 #include "surfel/base/point_cloud.h"
+#include "surfel/surface/ldlt6.h"
 
 namespace surfel {
 
@@ -308,10 +309,9 @@ public:
             for (int j = 0; j < 6; ++j) M(i, j) = mom_[kMoment[i][j]];
         for (int terms = terms_; terms >= 1; terms = terms == 6 ? 3 : terms == 3 ? 1 : 0) {
             Eigen::Matrix<double, 6, 1> sol = Eigen::Matrix<double, 6, 1>::Zero();
-            if (terms == 6) {
-                Eigen::LDLT<Eigen::Matrix<double, 6, 6>> s(M);
-                if (s.info() != Eigen::Success || !Conditioned(s.vectorD())) continue;
-                sol = s.solve(b_);
+            if (terms == 6) {  // Eigen::LDLT's result to the bit, without its generic code (ldlt6.h)
+                Eigen::Matrix<double, 6, 1> d;
+                if (!SolveLdlt6(M.data(), b_.data(), sol.data(), d.data()) || !Conditioned(d)) continue;
             } else if (terms == 3) {
                 Eigen::LDLT<Eigen::Matrix3d> s(M.topLeftCorner<3, 3>());
                 if (s.info() != Eigen::Success || !Conditioned(s.vectorD())) continue;

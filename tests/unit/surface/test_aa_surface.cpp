@@ -9,7 +9,9 @@
 
 #include "surfel/base/error.h"
 #include "surfel/base/shapes.h"
+#include "surfel/spatial/kd_tree.h"
 #include "surfel/surface/aa_surface.h"
+#include "surfel/surface/local_analysis.h"
 
 namespace surfel {
 namespace {
@@ -203,6 +205,40 @@ TEST(AaOptions, DefaultsAndLimitsAreValid) {
         EXPECT_NO_THROW((AaOptions{.h = 0, .degree = degree, .precision = 0, .max_iterations = kMaxSurfaceIterations})
                             .Validate());
     EXPECT_NO_THROW((AaOptions{.max_iterations = 1, .ball_k = kMaxBallNeighbors}).Validate());
+}
+
+// A cloud without normals: the weight normals are estimated on another thread from the
+// constructor on. They are EstimateNormals' (k-d tree, default options) to the bit, every
+// evaluation waits for them (the same values from a surface evaluated at once and one evaluated
+// late), and a cancellation during the estimation surfaces as Error(kCancelled) from the first
+// evaluation, every time it is asked, and not from a destructor.
+TEST(AaSurfaceNormals, EstimatedBesideTheSetupAndAwaited) {
+    ShapeOptions so;
+    so.points = 6000;
+    so.normals = false;
+    const PointCloud c = SampleShape(Shape::kTorus, so);
+    const std::vector<Vec3f> want = EstimateNormals(KdTree(c.positions)).normals;
+    const AaSurface early(c);
+    const Vec3d x(0.3, 0.2, 0.1);
+    const AaEvaluation e = early.Evaluate(x);
+    ASSERT_EQ(early.WeightNormals().size(), want.size());
+    EXPECT_EQ(std::memcmp(early.WeightNormals().data(), want.data(), want.size() * sizeof(Vec3f)), 0);
+    const AaSurface late(c);
+    EXPECT_EQ(std::memcmp(late.WeightNormals().data(), want.data(), want.size() * sizeof(Vec3f)), 0);
+    const AaEvaluation l = late.Evaluate(x);
+    EXPECT_EQ(e.f, l.f);
+    EXPECT_EQ(e.a, l.a);
+
+    const AaSurface cancelled(c, {}, [](double) { return false; });
+    for (int i = 0; i < 2; ++i) {
+        try {
+            (void)cancelled.Evaluate(x);
+            ADD_FAILURE() << "evaluated a surface whose normal estimation was cancelled";
+        } catch (const Error& err) {
+            EXPECT_EQ(err.code(), ErrorCode::kCancelled);
+        }
+    }
+    { const AaSurface never_used(c, {}, [](double) { return false; }); }  // waits, does not throw
 }
 
 }  // namespace
