@@ -159,9 +159,8 @@ void RegisterServiceCommands(CLI::App& app) {
         AddServer(sub, a.get());
         sub->callback([a] {
             client::ServiceClient c(a->server, 30.0, a->connect.options);
-            const std::string bytes = c.Download(a->id, ByteProgressBar("download", a->flags));
-            WriteFileBytes(a->output, bytes);
-            PrintReport({{"job_id", a->id}, {"output", a->output}, {"size_bytes", bytes.size()}}, a->flags);
+            const std::uint64_t size = c.DownloadToFile(a->id, a->output, ByteProgressBar("download", a->flags));
+            PrintReport({{"job_id", a->id}, {"output", a->output}, {"size_bytes", size}}, a->flags);
         });
     }
 }

@@ -1,6 +1,8 @@
 #include "service_client.h"
 
 #include <atomic>
+#include <cerrno>
+#include <cstring>
 #include <chrono>
 #include <filesystem>
 #include <fstream>
@@ -8,6 +10,7 @@
 #include <sstream>
 #include <thread>
 
+#include "surfel/base/error.h"
 #include "surfel/worker/sha256.h"
 
 namespace surfel::client {
@@ -287,6 +290,48 @@ std::string ServiceClient::Download(const std::string& job_id, const ByteProgres
     }
     Check(reader->Finish(), "Download " + job_id);
     return bytes;
+}
+
+std::uint64_t ServiceClient::DownloadToFile(const std::string& job_id, const std::string& path,
+                                            const ByteProgress& progress) {
+    const std::string tmp = path + ".tmp-surfel";  // as WriteFileBytes
+    std::ofstream out(tmp, std::ios::binary | std::ios::trunc);
+    if (!out) throw Error(ErrorCode::kNotFound, path + ": cannot create file (" + std::strerror(errno) + ")");
+    struct RemoveUnlessKept {
+        const std::string& tmp;
+        bool keep = false;
+        ~RemoveUnlessKept() {
+            std::error_code ec;
+            if (!keep) std::filesystem::remove(tmp, ec);
+        }
+    } guard{tmp};
+    grpc::ClientContext ctx;
+    Authorize(ctx);
+    v1::DownloadRequest req;
+    req.set_job_id(job_id);
+    auto reader = stub_->Download(&ctx, req);
+    std::uint64_t size = 0;
+    v1::DataChunk chunk;
+    // Each chunk (the server's 256 KiB) is written while it is in the cache; one write of a
+    // whole result held in memory costs several times the CPU (bench/README.md, session 11).
+    while (reader->Read(&chunk)) {
+        out.write(chunk.data().data(), static_cast<std::streamsize>(chunk.data().size()));
+        size += chunk.data().size();
+        if (!out) {
+            ctx.TryCancel();
+            reader->Finish();
+            throw Error(ErrorCode::kInternal, path + ": write failed (" + std::strerror(errno) + ")");
+        }
+        if (progress) progress(size, static_cast<std::uint64_t>(chunk.total_size()));
+    }
+    Check(reader->Finish(), "Download " + job_id);
+    out.close();
+    if (!out) throw Error(ErrorCode::kInternal, path + ": write failed (" + std::strerror(errno) + ")");
+    std::error_code ec;
+    std::filesystem::rename(tmp, path, ec);
+    if (ec) throw Error(ErrorCode::kNotFound, path + ": cannot create file (" + ec.message() + ")");
+    guard.keep = true;
+    return size;
 }
 
 v1::Job ServiceClient::Cancel(const std::string& job_id) {

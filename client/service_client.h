@@ -71,6 +71,11 @@ public:
                        const std::function<void(std::uint32_t)>& on_queued = {},
                        const ByteProgress& on_bytes = {});
     std::string Download(const std::string& job_id, const ByteProgress& progress = {});
+    /// Downloads a job's result into the file `path`, each chunk written as it arrives (never
+    /// the whole result in memory): into `path`.tmp-surfel, renamed to `path` once the call
+    /// succeeded (the server checked the SHA-256), removed when it failed. Returns the size.
+    std::uint64_t DownloadToFile(const std::string& job_id, const std::string& path,
+                                 const ByteProgress& progress = {});
     v1::Job Cancel(const std::string& job_id);
     v1::Job GetJob(const std::string& job_id);
     std::vector<v1::Job> ListJobs(std::uint32_t limit = 100, v1::JobState state = v1::JOB_STATE_UNSPECIFIED);

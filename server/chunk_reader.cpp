@@ -23,8 +23,10 @@ bool ChunkReader::Open(const worker::BlobStore& blobs, const std::string& job_id
 
 bool ChunkReader::Next(v1::DataChunk* chunk, std::size_t size) {
     if (sent_any_ && offset_ >= total_) return false;
-    std::string data(static_cast<std::size_t>(std::min<std::int64_t>(static_cast<std::int64_t>(size), total_ - offset_)),
-                     '\0');
+    // Read straight into the message's bytes: a chunk reused for every write (DownloadReactor)
+    // keeps its buffer, so no allocation and no zero fill per chunk, and nothing is copied again.
+    std::string& data = *chunk->mutable_data();
+    data.resize(static_cast<std::size_t>(std::min<std::int64_t>(static_cast<std::int64_t>(size), total_ - offset_)));
     std::size_t at = 0;
     while (at < data.size()) {
         const std::size_t got = in_->Read(data.data() + at, data.size() - at);
@@ -40,8 +42,7 @@ bool ChunkReader::Next(v1::DataChunk* chunk, std::size_t size) {
     }
     chunk->set_offset(offset_);
     chunk->set_total_size(total_);
-    chunk->set_data(std::move(data));
-    offset_ += static_cast<std::int64_t>(chunk->data().size());
+    offset_ += static_cast<std::int64_t>(data.size());
     sent_any_ = true;
     return true;
 }

@@ -5,6 +5,7 @@
 #include <grpcpp/health_check_service_interface.h>
 #include <grpcpp/security/server_credentials.h>
 #include <grpcpp/server_builder.h>
+#include <malloc.h>
 #include <signal.h>
 #include <spdlog/sinks/stdout_color_sinks.h>
 #include <spdlog/spdlog.h>
@@ -93,6 +94,7 @@ struct Flags {
     std::size_t max_queued = 256;
     std::size_t ingest_threads = 2;
     std::size_t ingest_queue = 64;
+    double upload_window_mib = 8;
     double max_upload_mb = 2048;
     std::uint64_t max_points = 50'000'000;
     double max_job_memory_mb = -1;  // -1: 3/4 of the memory available at start
@@ -155,6 +157,14 @@ bool IsLoopback(const std::string& host) {
 
 int main(int argc, char** argv) {
     using namespace surfel;
+#ifdef __GLIBC__
+    // Freed memory stays with the process up to 64 MiB per arena, and blocks up to 32 MiB come
+    // from the heap (what glibc's dynamic thresholds reach anyway after a 32 MiB block is
+    // freed): gRPC's receive buffers and an upload's chunks are reused instead of handed back
+    // to the kernel after every message (madvise) and faulted in again, zeroed, for the next.
+    mallopt(M_MMAP_THRESHOLD, 32 << 20);
+    mallopt(M_TRIM_THRESHOLD, 64 << 20);
+#endif
     CLI::App app{"surfel-server: point-cloud jobs (" + worker::JobKindNames() + ") over gRPC (surfel.v1.Surfel)"};
     Flags f;
     app.add_option("--host", f.host, "Address to listen on (0.0.0.0 for every interface)")->default_val("127.0.0.1");
@@ -197,6 +207,12 @@ int main(int argc, char** argv) {
                    "(the bytes are kept: the client resumes)")
         ->default_val(64)
         ->check(CLI::Range(1, 100000));
+    app.add_option("--upload-window-mib", f.upload_window_mib,
+                   "HTTP/2 receive window of each gRPC stream in MiB (what a client may send ahead of "
+                   "the server: an upload's bytes in flight); 0 = gRPC's adaptive window, which "
+                   "grows with the link's bandwidth-delay product and buffers more (issue 19.3)")
+        ->default_val(8)
+        ->check(CLI::Range(0.0, 1024.0));
     app.add_option("--max-upload-mb", f.max_upload_mb, "Largest upload in MiB")->default_val(2048)->check(CLI::PositiveNumber);
     app.add_option("--max-points", f.max_points, "Largest accepted point count")->default_val(50'000'000);
     app.add_option("--job-nice", f.job_nice,
@@ -370,6 +386,16 @@ int main(int argc, char** argv) {
         builder.AddListeningPort(f.host + ":" + std::to_string(f.port), credentials, &bound_port);
         builder.RegisterService(&service);
         builder.SetMaxReceiveMessageSize(4 << 20);
+        if (f.upload_window_mib > 0) {
+            // A fixed window instead of the adaptive one: on a fast link the adaptive window
+            // lets the client run tens of MiB ahead of the server, buffered in fresh heap
+            // memory on several gRPC threads (page faults cost the receive ~20 % of its CPU,
+            // bench/README.md "Session 11 (upload helper)"). 8 MiB still fills a 1 Gbit/s link
+            // at 64 ms round trip.
+            builder.AddChannelArgument(GRPC_ARG_HTTP2_BDP_PROBE, 0);
+            builder.AddChannelArgument(GRPC_ARG_HTTP2_STREAM_LOOKAHEAD_BYTES,
+                                       static_cast<int>(f.upload_window_mib * (1 << 20)));
+        }
         std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
         if (!server || bound_port == 0) {
             spdlog::error("cannot listen on {}:{}", f.host, f.port);

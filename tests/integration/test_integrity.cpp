@@ -7,6 +7,7 @@
 
 #include <filesystem>
 #include <fstream>
+#include <iterator>
 #include <string>
 
 #include "server_process.h"
@@ -83,8 +84,29 @@ TEST_F(IntegrityTest, AResultRecordsItsSha256AndAFlippedByteFailsItsDownload) {
     EXPECT_EQ(out.result.sha256(), worker::Sha256Hex(out.bytes));
     EXPECT_EQ(c.GetJob(job.id()).result().sha256(), out.result.sha256());
     EXPECT_EQ(c.Download(job.id()), out.bytes);
+    // Into a file, chunk by chunk (surfel download): the same bytes, no temporary left.
+    const fs::path good = dir_ / "good.ply";
+    EXPECT_EQ(c.DownloadToFile(job.id(), good.string()), out.bytes.size());
+    {
+        std::ifstream in(good, std::ios::binary);
+        EXPECT_EQ(std::string(std::istreambuf_iterator<char>(in), {}), out.bytes);
+    }
+    EXPECT_FALSE(fs::exists(good.string() + ".tmp-surfel"));
 
     FlipByte(fs::path(data) / "results" / job.id(), 3);
+    // A corrupt result never reaches the file: neither the output nor its temporary is left,
+    // and an earlier file of that name keeps its bytes.
+    for (const fs::path& target : {dir_ / "bad.ply", good}) {
+        try {
+            c.DownloadToFile(job.id(), target.string());
+            ADD_FAILURE() << "a corrupt result was written to " << target;
+        } catch (const RpcError& e) {
+            EXPECT_EQ(e.status().error_code(), grpc::StatusCode::DATA_LOSS) << e.what();
+        }
+        EXPECT_FALSE(fs::exists(target.string() + ".tmp-surfel"));
+    }
+    EXPECT_FALSE(fs::exists(dir_ / "bad.ply"));
+    EXPECT_EQ(fs::file_size(good), out.bytes.size());
     try {
         c.Download(job.id());
         ADD_FAILURE() << "a corrupt result was downloaded";

@@ -127,11 +127,22 @@ PointCloud ParsePointCloud(std::string_view data, std::string_view name, const P
 }
 
 CloudFileSummary InspectCloudFile(std::string_view data, std::string_view name, const PlyReadOptions& options) {
+    const CloudFormatEntry& entry = EntryForContent(data);
+    if (entry.format == CloudFileFormat::kPly) {  // the positions streamed, never all in memory
+        PlySummary ply = InspectPly(data, name, options);
+        if (ply.points == 0) throw Error(ErrorCode::kInvalidArgument, std::string(name) + ": the cloud has no points");
+        CloudFileSummary s;
+        s.points = ply.points;
+        s.bounds = ply.bounds;
+        s.attributes = std::move(ply.attributes);
+        s.format = entry.encoding(data);
+        return s;
+    }
     // Only the positions are kept (bounds, the count); the parse and its checks are the full ones.
     PlyReadOptions positions = options;
     positions.positions_only = true;
     PlyHeaderInfo info;
-    const PointCloud cloud = EntryForContent(data).parse(data, name, positions, &info);
+    const PointCloud cloud = entry.parse(data, name, positions, &info);
     if (cloud.empty()) throw Error(ErrorCode::kInvalidArgument, std::string(name) + ": the cloud has no points");
     CloudFileSummary s;
     s.points = cloud.size();

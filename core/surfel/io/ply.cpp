@@ -299,6 +299,40 @@ struct FaceSink {
     std::uint64_t polygons = 0;
 };
 
+// Records of a fixed-size binary element read per block: about 64 KiB of them.
+std::uint64_t BlockRecords(const Element& e) {
+    const std::size_t rec = e.FixedSize();
+    return rec > 0 ? std::max<std::uint64_t>(1, (64u << 10) / rec) : e.count;
+}
+
+// The positions of a fixed-size binary vertex element handed over one block at a time instead
+// of stored (InspectPly): the count, the bounds and the first coordinate that is not finite,
+// in a block-sized scratch array (no array of every position: 12 bytes a point never touched).
+struct PositionStream {
+    std::vector<Vec3f> scratch;  // one block of positions; the x, y, z sinks point into it
+    BoundingBox bounds;
+    std::uint64_t first_bad = UINT64_MAX;  // the lowest vertex index with a non-finite coordinate
+    Vec3f bad_value = Vec3f::Zero();
+
+    void Take(std::size_t m, std::uint64_t first) {
+        if (first_bad != UINT64_MAX) return;  // refused anyway: the message names the first one
+        const Vec3f* p = scratch.data();
+        // A local box, the same Extend in the same order as PointCloud::Bounds (the same bits):
+        // kept in registers, where the member would be stored back for every point (it may alias
+        // the scratch floats), which took half of the check's time.
+        BoundingBox box = bounds;
+        for (std::size_t i = 0; i < m; ++i) {
+            if (!p[i].allFinite()) {
+                first_bad = first + i;
+                bad_value = p[i];
+                break;
+            }
+            box.Extend(p[i]);
+        }
+        bounds = box;
+    }
+};
+
 class BodyReader {
 public:
     BodyReader(std::string_view data, std::string_view file, const Header& h)
@@ -324,8 +358,11 @@ public:
     // Reads all records of `e`; sinks[i] receives scalar property i. `faces` handles the list.
     // `capacity` is MaxRecords(e) at the element's start: the sinks hold that many records, and
     // a record at or past it cannot be complete in the remaining data.
-    void Read(const Element& e, const std::vector<Sink>& sinks, FaceSink* faces, std::uint64_t capacity) {
-        if (h_.format != PlyFormat::kAscii && !e.HasLists()) return ReadFixedBinary(e, sinks);
+    // `stream` (only for a fixed-size binary element): every active sink points into its scratch
+    // block, which ReadFixedBinary hands over block by block.
+    void Read(const Element& e, const std::vector<Sink>& sinks, FaceSink* faces, std::uint64_t capacity,
+              PositionStream* stream = nullptr) {
+        if (h_.format != PlyFormat::kAscii && !e.HasLists()) return ReadFixedBinary(e, sinks, stream);
         std::vector<std::uint32_t> poly;
         for (std::uint64_t i = 0; i < e.count; ++i) {
             // An ascii record needs a line of its own, so running out is found (and reported) by
@@ -359,26 +396,29 @@ private:
                         std::to_string(data_.size()) + ")");
     }
 
-    void ReadFixedBinary(const Element& e, const std::vector<Sink>& sinks) {
+    void ReadFixedBinary(const Element& e, const std::vector<Sink>& sinks, PositionStream* stream) {
         const std::size_t rec = e.FixedSize();
         const std::uint64_t n = e.count;
         if (rec > 0 && n > remaining() / rec) Truncated(e, remaining() / rec);
         const char* base = data_.data() + pos_;
         // Block by block (about 64 KiB of records each), every column of a block while it is in
         // the cache: one pass over the bytes instead of one per property.
-        const std::uint64_t block = rec > 0 ? std::max<std::uint64_t>(1, (64u << 10) / rec) : n;
+        const std::uint64_t block = BlockRecords(e);  // `stream`'s scratch holds one
         for (std::uint64_t b = 0; rec > 0 && b < n; b += block) {
             const std::size_t m = static_cast<std::size_t>(std::min(block, n - b));
             std::size_t off = 0;
             for (std::size_t k = 0; k < e.props.size(); ++k) {
                 if (sinks.size() > k && sinks[k].active()) {
                     Sink s = sinks[k];
-                    if (s.f) s.f += b * s.stride;
-                    else s.d += b * s.stride;
+                    if (!stream) {  // a streamed block is filled from its start
+                        if (s.f) s.f += b * s.stride;
+                        else s.d += b * s.stride;
+                    }
                     ExtractColumn(e.props[k].type, base + b * rec, rec, m, off, swap_, s);
                 }
                 off += ScalarSize(e.props[k].type);
             }
+            if (stream) stream->Take(m, b);
         }
         pos_ += rec * n;
     }
@@ -494,7 +534,21 @@ const char* PlyFormatName(PlyFormat format) {
     return "?";
 }
 
-PointCloud ParsePly(std::string_view data, std::string_view file, const PlyReadOptions& options, PlyHeaderInfo* info) {
+namespace {
+
+// "vertex 7, field 'y': coordinate is not finite (nan)"
+std::string NonFiniteMessage(std::uint64_t i, const Vec3f& p) {
+    const int axis = !std::isfinite(p.x()) ? 0 : !std::isfinite(p.y()) ? 1 : 2;
+    std::ostringstream os;
+    os << "vertex " << i << ", field '" << "xyz"[axis] << "': coordinate is not finite (" << p[axis] << ")";
+    return os.str();
+}
+
+// ParsePly, and InspectPly when `summary` is given: then only the positions are read
+// (positions_only), and those of a fixed-size binary vertex element are not even kept but
+// streamed through a block (PositionStream); the checks, their order and messages are the same.
+PointCloud ParsePlyImpl(std::string_view data, std::string_view file, const PlyReadOptions& options,
+                        PlyHeaderInfo* info, PlySummary* summary) {
     const Header h = ParseHeader(data, file, options);
     const Element* vertex = nullptr;
     for (const auto& e : h.elements)
@@ -506,7 +560,10 @@ PointCloud ParsePly(std::string_view data, std::string_view file, const PlyReadO
 
     PointCloud cloud;
     std::vector<std::string> attributes;  // cloud.AttributeNames() of the full parse
-    const bool keep = !options.positions_only;
+    const bool keep = !options.positions_only && !summary;
+    const bool streaming = summary && h.format != PlyFormat::kAscii && !vertex->HasLists();
+    PositionStream stream;
+    std::uint64_t vertex_count = 0;
     BodyReader body(data, file, h);
     for (const auto& e : h.elements) {
         std::vector<Sink> sinks(e.props.size());
@@ -532,7 +589,19 @@ PointCloud ParsePly(std::string_view data, std::string_view file, const PlyReadO
                 sinks[ic] = {base + 2, nullptr, 3, 1.0f};
                 return true;
             };
-            bind_vec3(cloud.positions, "x", "y", "z", true);
+            if (streaming) {  // the sinks point into one block; ReadFixedBinary fills it block by block
+                const int ix = idx("x"), iy = idx("y"), iz = idx("z");
+                claimed[ix] = claimed[iy] = claimed[iz] = true;
+                if (n > 0) {
+                    stream.scratch.resize(static_cast<std::size_t>(std::min(BlockRecords(e), n)));
+                    float* base = stream.scratch.front().data();
+                    sinks[ix] = {base + 0, nullptr, 3, 1.0f};
+                    sinks[iy] = {base + 1, nullptr, 3, 1.0f};
+                    sinks[iz] = {base + 2, nullptr, 3, 1.0f};
+                }
+            } else {
+                bind_vec3(cloud.positions, "x", "y", "z", true);
+            }
             if (bind_vec3(cloud.normals, "nx", "ny", "nz", keep) && n > 0) attributes.emplace_back("normals");
             const int ir = idx("red"), ig = idx("green"), ib = idx("blue"), ia = idx("alpha");
             if (ir >= 0 && ig >= 0 && ib >= 0) {
@@ -588,27 +657,29 @@ PointCloud ParsePly(std::string_view data, std::string_view file, const PlyReadO
                 faces.triangles = &cloud.triangles;
             }
         }
-        body.Read(e, sinks, faces.triangles ? &faces : nullptr, capacity);
+        const bool streamed = streaming && &e == vertex;
+        body.Read(e, sinks, faces.triangles ? &faces : nullptr, capacity, streamed ? &stream : nullptr);
+        if (streamed) vertex_count = e.count;  // ReadFixedBinary refused a file too short for them
         if (faces.triangles && info) info->face_count = faces.polygons;
     }
     body.Finish();
+    if (!streaming) vertex_count = cloud.positions.size();
 
     // Validation of values (after all elements: a face element may precede the vertices).
-    for (std::size_t i = 0; i < cloud.positions.size(); ++i) {
-        const Vec3f& p = cloud.positions[i];
-        if (!p.allFinite()) {
-            const int axis = !std::isfinite(p.x()) ? 0 : !std::isfinite(p.y()) ? 1 : 2;
-            std::ostringstream os;
-            os << "vertex " << i << ", field '" << "xyz"[axis] << "': coordinate is not finite (" << p[axis] << ")";
-            Fail(file, os.str());
-        }
-    }
+    if (stream.first_bad != UINT64_MAX) Fail(file, NonFiniteMessage(stream.first_bad, stream.bad_value));
+    for (std::size_t i = 0; i < cloud.positions.size(); ++i)
+        if (!cloud.positions[i].allFinite()) Fail(file, NonFiniteMessage(i, cloud.positions[i]));
     for (std::size_t f = 0; f < cloud.triangles.size(); ++f)
         for (std::uint32_t v : cloud.triangles[f])
-            if (v >= cloud.positions.size())
+            if (v >= vertex_count)
                 Fail(file, "face triangle " + std::to_string(f) + ": vertex index " +
                                (v == UINT32_MAX ? std::string("out of range") : std::to_string(v)) + " is not below the vertex count " +
-                               std::to_string(cloud.positions.size()));
+                               std::to_string(vertex_count));
+    if (summary) {
+        summary->points = vertex_count;
+        summary->bounds = streaming ? stream.bounds : cloud.Bounds();
+        summary->attributes = attributes;
+    }
     if (info) {
         info->attributes = std::move(attributes);
         info->format = h.format;
@@ -624,6 +695,18 @@ PointCloud ParsePly(std::string_view data, std::string_view file, const PlyReadO
     }
     cloud.CheckConsistent();
     return cloud;
+}
+
+}  // namespace
+
+PointCloud ParsePly(std::string_view data, std::string_view file, const PlyReadOptions& options, PlyHeaderInfo* info) {
+    return ParsePlyImpl(data, file, options, info, nullptr);
+}
+
+PlySummary InspectPly(std::string_view data, std::string_view file, const PlyReadOptions& options) {
+    PlySummary summary;
+    ParsePlyImpl(data, file, options, nullptr, &summary);
+    return summary;
 }
 
 // ---- Writing ---------------------------------------------------------------------------------------

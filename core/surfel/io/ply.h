@@ -65,6 +65,19 @@ struct PlyWriteOptions {
 PointCloud ParsePly(std::string_view data, std::string_view name, const PlyReadOptions& options = {},
                     PlyHeaderInfo* info = nullptr);
 
+/// What an upload's check keeps of a PLY file (InspectPly).
+struct PlySummary {
+    std::uint64_t points = 0;             ///< Vertices.
+    BoundingBox bounds;                   ///< Of the positions (all finite).
+    std::vector<std::string> attributes;  ///< PointCloud::AttributeNames() of the full parse.
+};
+
+/// ParsePly with positions_only, summarised, with the same checks in the same order and the
+/// same messages; the positions of a binary vertex element without lists are not kept at all
+/// (read a block of about 64 KiB at a time: no array of every position to allocate and fault
+/// in, issue 19.3). What InspectCloudFile runs for PLY uploads.
+PlySummary InspectPly(std::string_view data, std::string_view name, const PlyReadOptions& options = {});
+
 /// Reads a PLY file. Throws Error(kNotFound) when it cannot be opened.
 PointCloud ReadPly(const std::string& path, const PlyReadOptions& options = {},
                    PlyHeaderInfo* info = nullptr);

@@ -3,7 +3,9 @@
 
 #include <unistd.h>
 
+#include <algorithm>
 #include <filesystem>
+#include <limits>
 #include <optional>
 
 #include "surfel/base/error.h"
@@ -177,6 +179,50 @@ TEST(InspectCloudFile, RefusesWhatTheFullParseRefusesWithTheSameMessage) {
     const std::string binary = FormatPly(SampleShape(Shape::kSphere, o));
     ExpectSummaryMatchesFullParse(binary.substr(0, binary.size() - 7), "cut.ply");  // truncated
     ExpectSummaryMatchesFullParse(binary + "xyz", "tail.ply");                       // bytes after the end
+}
+
+// The binary positions are streamed a block at a time (InspectPly, never all in memory): a
+// coordinate that is not finite in a later block, with a later error that the full parse reports
+// first, faces checked against the streamed count, both byte orders, a file of whole blocks.
+TEST(InspectCloudFile, StreamedBinaryPositionsAgreeWithTheFullParse) {
+    ShapeOptions o;
+    o.points = 3 * 2730;  // 2,730 records of 24 bytes (positions + normals) fill a 64 KiB block
+    o.normals = true;
+    const PointCloud cloud = SampleShape(Shape::kTorus, o);
+    // FormatPly writes only the native byte order: big-endian by swapping every 4-byte value.
+    auto as = [](bool big, std::string le) {
+        if (!big) return le;
+        const std::size_t body = le.find("end_header\n") + 11;
+        le.replace(le.find("binary_little_endian"), 20, "binary_big_endian");
+        for (std::size_t i = body - 3; i + 4 <= le.size(); i += 4) std::reverse(le.begin() + i, le.begin() + i + 4);
+        return le;
+    };
+    for (const bool big : {false, true}) {
+        const std::string bytes = as(big, FormatPly(cloud));
+        ASSERT_EQ(ParsePointCloud(bytes, "whole.ply").positions, cloud.positions);  // a valid file
+        ExpectSummaryMatchesFullParse(bytes, "whole.ply");
+        for (const std::uint64_t bad : {std::uint64_t{0}, std::uint64_t{2729}, std::uint64_t{2730}, std::uint64_t{8000}}) {
+            PointCloud c = cloud;
+            c.positions[bad].y() = std::numeric_limits<float>::quiet_NaN();
+            if (bad == 8000) c.positions[bad + 1].x() = std::numeric_limits<float>::infinity();  // the first is named
+            const std::string nan = as(big, FormatPly(c));
+            ExpectSummaryMatchesFullParse(nan, "nan.ply");
+            ExpectSummaryMatchesFullParse(nan + "junk", "nan-tail.ply");  // the tail is reported first
+            ExpectSummaryMatchesFullParse(nan.substr(0, nan.size() - 5), "nan-cut.ply");
+        }
+    }
+    // Faces (a list element after the fixed-size vertices): indices checked against the count.
+    PointCloud mesh = cloud;
+    mesh.triangles = {{0, 1, 2}, {3, 4, static_cast<std::uint32_t>(cloud.size() - 1)}};
+    ExpectSummaryMatchesFullParse(FormatPly(mesh), "mesh.ply");
+    mesh.triangles.push_back({0, 1, static_cast<std::uint32_t>(cloud.size())});
+    ExpectSummaryMatchesFullParse(FormatPly(mesh), "mesh-bad.ply");
+    // InspectPly itself: the count, exact bounds and the attributes of the full parse.
+    const PlySummary s = InspectPly(FormatPly(cloud), "torus.ply");
+    EXPECT_EQ(s.points, cloud.size());
+    EXPECT_EQ(s.bounds.min, cloud.Bounds().min);
+    EXPECT_EQ(s.bounds.max, cloud.Bounds().max);
+    EXPECT_EQ(s.attributes, std::vector<std::string>{"normals"});
 }
 
 // ---- Files ------------------------------------------------------------------------------------
