@@ -269,7 +269,8 @@ Vec3f ParticleEngine::OntoPlane(Vec3f moved, std::uint32_t q) const {
     return moved;
 }
 
-void ParticleEngine::Relax(std::vector<Vec3f>& positions, double radius, int iterations) const {
+void ParticleEngine::Relax(std::vector<Vec3f>& positions, double radius, int iterations,
+                           const std::vector<std::uint8_t>* movable) const {
     const std::size_t m = positions.size();
     const float r = static_cast<float>(radius);
     std::vector<Vec3f> next(m);
@@ -278,6 +279,10 @@ void ParticleEngine::Relax(std::vector<Vec3f>& positions, double radius, int ite
         tbb::parallel_for(tbb::blocked_range<std::size_t>(0, m, 512), [&](const auto& range) {
             for (std::size_t p = range.begin(); p != range.end(); ++p) {
                 const Vec3f x = positions[p];
+                if (movable && !(*movable)[p]) {
+                    next[p] = x;
+                    continue;
+                }
                 Vec3d force = Vec3d::Zero();
                 grid.ForEachWithin(x, r, [&](std::uint32_t j, const Vec3f& y, float d2) {
                     if (j == p) return;

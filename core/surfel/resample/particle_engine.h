@@ -141,8 +141,10 @@ public:
     /// Relaxation filter of dynamic sampling (notes 3.2.3): `iterations` Jacobi steps of the
     /// linear repulsion (eq. 2.2-2.3, as in Run) among `positions` within `radius` (model units,
     /// > 0), each move put back onto the tangent plane of the closest input point and within its
-    /// reach. Deterministic whatever the thread count.
-    void Relax(std::vector<Vec3f>& positions, double radius, int iterations) const;
+    /// reach. Deterministic whatever the thread count. With `movable`, only the positions it
+    /// flags move (the others still push): the local relaxation of a split round.
+    void Relax(std::vector<Vec3f>& positions, double radius, int iterations,
+               const std::vector<std::uint8_t>* movable = nullptr) const;
 
     /// The kd-tree over the input positions.
     const KdTree& tree() const { return *tree_; }

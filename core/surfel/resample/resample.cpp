@@ -13,6 +13,7 @@
 #include "surfel/base/validate.h"
 #include "surfel/resample/particle_engine.h"
 #include "surfel/spatial/kd_tree.h"
+#include "surfel/spatial/uniform_grid.h"
 #include "surfel/spatial/neighbor_radii.h"
 #include "surfel/surface/local_analysis.h"
 #include "surfel/surface/poly_fit.h"
@@ -43,6 +44,10 @@ constexpr int kInterpolationNeighbors = 10;
 constexpr int kSplitNeighbors = 6;
 constexpr int kSplitRelaxIterations = 10;
 constexpr double kSplitRelaxRadius = 1.0;
+// How far from a split sample (in target spacings) its round's relaxation moves samples. At 2 the
+// samples bunched near the splits (sphere test: NN mean 0.0358 for a target of 0.04, CV 0.065);
+// at 4 NN mean 0.0371, CV 0.042.
+constexpr double kSplitRelaxReach = 4.0;
 constexpr double kSlopeDamping = 1e-3;
 
 struct InterpolationWeights {
@@ -315,8 +320,21 @@ void RunSplit(const PointCloud& input, const KdTree& input_tree, std::span<const
             pos[i] -= off;
         }
         report.splits += split.size();
-        // Relaxation (3.2.3): repulsion within the target spacing, kept on the surface.
-        engine.Relax(pos, kSplitRelaxRadius * s, kSplitRelaxIterations);
+        // Relaxation (3.2.3): repulsion within the target spacing, kept on the surface, of the
+        // samples within kSplitRelaxReach spacings of a split (a filter that "redistributes the
+        // samples locally"): the rest, which met the spacing in an earlier round, stay put. On
+        // the bunny at s = 0.001 the rounds after the first split 10-1,000 samples each (the
+        // tangent ellipses of rim samples at its holes never meet the target), and relaxing every
+        // sample in each of 32 rounds took 11.6 s of an 11.6 s job (now 2.2 s, NN CV 0.066 -> 0.085).
+        std::vector<std::uint8_t> movable(pos.size(), 0);
+        {
+            const float reach = static_cast<float>(kSplitRelaxReach * s);
+            const UniformGrid grid(pos, reach);
+            for (std::size_t t = 0; t < split.size(); ++t)
+                for (const std::size_t i : {std::size_t{split[t]}, m + t})
+                    grid.ForEachWithin(pos[i], reach, [&](std::uint32_t j, const Vec3f&, float) { movable[j] = 1; });
+        }
+        engine.Relax(pos, kSplitRelaxRadius * s, kSplitRelaxIterations, &movable);
         tbb::parallel_for(tbb::blocked_range<std::size_t>(0, pos.size(), 1024), [&](const auto& range) {
             for (std::size_t i = range.begin(); i != range.end(); ++i)
                 nrm[i] = normals[engine.tree().Nearest(pos[i]).index];
