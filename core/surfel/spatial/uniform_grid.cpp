@@ -99,6 +99,38 @@ void UniformGrid::BuildSparse(std::span<const Vec3f> points) {
     }
 }
 
+std::size_t UniformGrid::GatherBlock(int x, int y, int z, std::vector<float>& cx, std::vector<float>& cy,
+                                     std::vector<float>& cz, std::vector<std::uint32_t>* ids) const {
+    const int nx = dims_[0], ny = dims_[1], nz = dims_[2];
+    const std::uint32_t first = starts_[(static_cast<std::size_t>(x) * ny + y) * nz + z];
+    cx.clear(), cy.clear(), cz.clear();
+    if (ids) ids->clear();
+    std::size_t self = 0;
+    for (int bx = std::max(0, x - 1); bx <= std::min(nx - 1, x + 1); ++bx)
+        for (int by = std::max(0, y - 1); by <= std::min(ny - 1, y + 1); ++by) {
+            const std::size_t column = (static_cast<std::size_t>(bx) * ny + by) * nz;
+            const std::uint32_t b = starts_[column + std::max(0, z - 1)];
+            const std::uint32_t e = starts_[column + std::min(nz - 1, z + 1) + 1];
+            if (bx == x && by == y) self = cx.size() + (first - b);
+            for (std::uint32_t j = b; j < e; ++j) {
+                cx.push_back(sorted_[j].x()), cy.push_back(sorted_[j].y()), cz.push_back(sorted_[j].z());
+                if (ids) ids->push_back(order_[j]);
+            }
+        }
+    return self;
+}
+
+float UniformGrid::BlockReach(const Vec3f& p, const int at[3]) const {
+    const Vec3f lo = origin_ + cell_ * Vec3f(float(at[0] - 1), float(at[1] - 1), float(at[2] - 1));
+    const Vec3f hi = origin_ + cell_ * Vec3f(float(at[0] + 2), float(at[1] + 2), float(at[2] + 2));
+    float reach = std::numeric_limits<float>::infinity();
+    for (int a = 0; a < 3; ++a) {
+        if (at[a] > 0) reach = std::min(reach, p[a] - lo[a]);
+        if (at[a] < dims_[a] - 1) reach = std::min(reach, hi[a] - p[a]);
+    }
+    return reach - 1e-4f * cell_;
+}
+
 std::vector<float> UniformGrid::KthNeighborDist2InBlock(int k) const {
     SURFEL_CHECK(k >= 1 && k <= 64, "k must be 1..64, got " << k);
     if (!dense_) return {};
@@ -119,22 +151,8 @@ std::vector<float> UniformGrid::KthNeighborDist2InBlock(int k) const {
                     const std::size_t cell = (static_cast<std::size_t>(x) * ny + y) * nz + z;
                     const std::uint32_t first = starts_[cell], last = starts_[cell + 1];
                     if (first == last) continue;
-                    cx.clear(), cy.clear(), cz.clear();
-                    std::size_t self = 0;  // where the cell's own points start among the candidates
-                    for (int bx = std::max(0, x - 1); bx <= std::min(nx - 1, x + 1); ++bx)
-                        for (int by = std::max(0, y - 1); by <= std::min(ny - 1, y + 1); ++by) {
-                            const std::size_t column = (static_cast<std::size_t>(bx) * ny + by) * nz;
-                            const std::uint32_t b = starts_[column + std::max(0, z - 1)];
-                            const std::uint32_t e = starts_[column + std::min(nz - 1, z + 1) + 1];
-                            if (bx == x && by == y) self = cx.size() + (first - b);
-                            for (std::uint32_t j = b; j < e; ++j)
-                                cx.push_back(sorted_[j].x()), cy.push_back(sorted_[j].y()), cz.push_back(sorted_[j].z());
-                        }
+                    const std::size_t self = GatherBlock(x, y, z, cx, cy, cz, nullptr);
                     const std::size_t m = cx.size();
-                    // The block reaches at least this far from any point of the cell on every side
-                    // that has a neighbour cell; a side at the grid's edge has no points beyond it.
-                    const Vec3f lo = origin_ + cell_ * Vec3f(float(x - 1), float(y - 1), float(z - 1));
-                    const Vec3f hi = origin_ + cell_ * Vec3f(float(x + 2), float(y + 2), float(z + 2));
                     const int at[3] = {x, y, z};
                     if (d2.size() < m) d2.resize(m), kept.resize(m);
                     const float *X = cx.data(), *Y = cy.data(), *Z = cz.data();
@@ -190,14 +208,7 @@ std::vector<float> UniformGrid::KthNeighborDist2InBlock(int k) const {
                         if (!(kth >= 0.0f) || std::isinf(kth)) continue;
                         prev = p;
                         prev_rho = std::sqrt(kth);  // k real points lie this close: a valid bound
-                        // How far the block reaches from p (less a hair: cell assignment and these
-                        // bounds round differently).
-                        float reach = std::numeric_limits<float>::infinity();
-                        for (int a = 0; a < 3; ++a) {
-                            if (at[a] > 0) reach = std::min(reach, p[a] - lo[a]);
-                            if (at[a] < dims_[a] - 1) reach = std::min(reach, hi[a] - p[a]);
-                        }
-                        reach -= 1e-4f * cell_;
+                        const float reach = BlockReach(p, at);
                         if (reach > 0.0f && kth <= reach * reach) out[order_[i]] = kth;
                     }
                 }
@@ -230,23 +241,9 @@ void UniformGrid::KnnInBlock(int k, std::uint32_t* indices, float* dist2, std::u
                     const std::uint32_t first = starts_[cell], last = starts_[cell + 1];
                     if (first == last) continue;
                     slab_points += last - first;
-                    cx.clear(), cy.clear(), cz.clear(), cid.clear();
-                    std::size_t self = 0;
-                    for (int bx = std::max(0, x - 1); bx <= std::min(nx - 1, x + 1); ++bx)
-                        for (int by = std::max(0, y - 1); by <= std::min(ny - 1, y + 1); ++by) {
-                            const std::size_t column = (static_cast<std::size_t>(bx) * ny + by) * nz;
-                            const std::uint32_t b = starts_[column + std::max(0, z - 1)];
-                            const std::uint32_t e = starts_[column + std::min(nz - 1, z + 1) + 1];
-                            if (bx == x && by == y) self = cx.size() + (first - b);
-                            for (std::uint32_t j = b; j < e; ++j) {
-                                cx.push_back(sorted_[j].x()), cy.push_back(sorted_[j].y()), cz.push_back(sorted_[j].z());
-                                cid.push_back(order_[j]);
-                            }
-                        }
+                    const std::size_t self = GatherBlock(x, y, z, cx, cy, cz, &cid);
                     const std::size_t m = cx.size();
                     if (m <= static_cast<std::size_t>(k)) continue;  // fewer than k others
-                    const Vec3f lo = origin_ + cell_ * Vec3f(float(x - 1), float(y - 1), float(z - 1));
-                    const Vec3f hi = origin_ + cell_ * Vec3f(float(x + 2), float(y + 2), float(z + 2));
                     const int at[3] = {x, y, z};
                     if (d2.size() < m) d2.resize(m);
                     const float *X = cx.data(), *Y = cy.data(), *Z = cz.data();
@@ -289,12 +286,7 @@ void UniformGrid::KnnInBlock(int k, std::uint32_t* indices, float* dist2, std::u
                         if (count < k || std::isinf(kth)) continue;
                         prev = p;
                         prev_rho = std::sqrt(kth);
-                        float reach = std::numeric_limits<float>::infinity();
-                        for (int a = 0; a < 3; ++a) {
-                            if (at[a] > 0) reach = std::min(reach, p[a] - lo[a]);
-                            if (at[a] < dims_[a] - 1) reach = std::min(reach, hi[a] - p[a]);
-                        }
-                        reach -= 1e-4f * cell_;
+                        const float reach = BlockReach(p, at);
                         if (!(reach > 0.0f && kth <= reach * reach)) continue;
                         const std::size_t row = static_cast<std::size_t>(order_[i]) * k;
                         for (int r = 0; r < k; ++r) indices[row + r] = best[r].index, dist2[row + r] = best[r].d2;

@@ -151,6 +151,16 @@ private:
         }
     }
 
+    // Dense layout: the points of the 3 x 3 x 3 block of cells around cell (x, y, z), as
+    // coordinate columns (and their input indices when `ids` is given; every vector cleared
+    // first); returns where the cell's own points start among them.
+    std::size_t GatherBlock(int x, int y, int z, std::vector<float>& cx, std::vector<float>& cy,
+                            std::vector<float>& cz, std::vector<std::uint32_t>* ids) const;
+    // How far the block around cell `at` reaches from p, a point of that cell, on every side
+    // that has a neighbour cell (a side at the grid's edge has no points beyond it), less a hair:
+    // cell assignment and these bounds round differently.
+    float BlockReach(const Vec3f& p, const int at[3]) const;
+
     void BuildDense(std::span<const Vec3f> points);
     void BuildSparse(std::span<const Vec3f> points);
 
