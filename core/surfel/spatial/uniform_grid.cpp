@@ -99,6 +99,23 @@ void UniformGrid::BuildSparse(std::span<const Vec3f> points) {
     }
 }
 
+namespace {
+// Squared distances from p to m candidates held as coordinate columns: dx * dx + dy * dy + dz * dz
+// in float, in that order (FLANN's L2_Simple sums them so, and KdTree's rows must be matched to
+// the bit), vectorised.
+// (Without __restrict GCC 12 left the loop scalar: 276 against 146 M instructions for KnnAll on
+// bunny_scan.)
+inline void Distances2(const float* __restrict X, const float* __restrict Y, const float* __restrict Z,
+                       std::size_t m, const Vec3f& p, float* __restrict D) {
+    const float px = p.x(), py = p.y(), pz = p.z();
+#pragma omp simd
+    for (std::size_t j = 0; j < m; ++j) {
+        const float dx = X[j] - px, dy = Y[j] - py, dz = Z[j] - pz;
+        D[j] = dx * dx + dy * dy + dz * dz;
+    }
+}
+}  // namespace
+
 std::size_t UniformGrid::GatherBlock(int x, int y, int z, std::vector<float>& cx, std::vector<float>& cy,
                                      std::vector<float>& cz, std::vector<std::uint32_t>* ids) const {
     const int nx = dims_[0], ny = dims_[1], nz = dims_[2];
@@ -160,12 +177,7 @@ std::vector<float> UniformGrid::KthNeighborDist2InBlock(int k) const {
                     float* K = kept.data();
                     for (std::uint32_t i = first; i < last; ++i) {
                         const Vec3f p = sorted_[i];
-                        const float px = p.x(), py = p.y(), pz = p.z();
-#pragma omp simd
-                        for (std::size_t j = 0; j < m; ++j) {
-                            const float dx = X[j] - px, dy = Y[j] - py, dz = Z[j] - pz;
-                            D[j] = dx * dx + dy * dy + dz * dz;
-                        }
+                        Distances2(X, Y, Z, m, p, D);
                         D[self + (i - first)] = std::numeric_limits<float>::infinity();  // not its own neighbour
                         // Only candidates within the triangle-inequality bound can be among the
                         // k nearest (kept branch-free; the bound is widened a hair for rounding).
@@ -250,12 +262,7 @@ void UniformGrid::KnnInBlock(int k, std::uint32_t* indices, float* dist2, std::u
                     float* D = d2.data();
                     for (std::uint32_t i = first; i < last; ++i) {
                         const Vec3f p = sorted_[i];
-                        const float px = p.x(), py = p.y(), pz = p.z();
-#pragma omp simd
-                        for (std::size_t j = 0; j < m; ++j) {
-                            const float dx = X[j] - px, dy = Y[j] - py, dz = Z[j] - pz;
-                            D[j] = dx * dx + dy * dy + dz * dz;  // FLANN's order: see the header
-                        }
+                        Distances2(X, Y, Z, m, p, D);
                         D[self + (i - first)] = std::numeric_limits<float>::infinity();  // not its own
                         // The k smallest by (distance, index), in one pass: a candidate beyond
                         // the threshold (the triangle-inequality bound, then the k-th so far)
