@@ -304,6 +304,27 @@ TEST_F(DiskTest, AFullFilesystemIsResourceExhaustedLeavesNoHalfFileAndLosesNothi
     server.Kill(SIGTERM);
 }
 
+// An Upload call left open after one chunk to upload id "held-open" (no finish_write): it holds
+// that id, and its bytes count as in flight, until Close().
+struct HeldUpload {
+    grpc::ClientContext ctx;
+    v1::Cloud response;
+    std::unique_ptr<grpc::ClientWriter<v1::UploadRequest>> writer;
+    // Opens the call and sends `bytes` bytes of `fill`; whether the chunk went out.
+    bool Open(v1::Surfel::Stub& stub, std::size_t bytes, char fill) {
+        writer = stub.Upload(&ctx, &response);
+        v1::UploadRequest chunk;
+        chunk.set_upload_id("held-open");
+        chunk.set_filename("x.ply");
+        chunk.set_data(std::string(bytes, fill));
+        return writer->Write(chunk);
+    }
+    void Close() {
+        ctx.TryCancel();
+        writer->Finish();
+    }
+};
+
 TEST_F(DiskTest, UploadBytesInFlightAreCappedAndTheHeldBytesKeptForAResume) {
     const std::string data = (dir_ / "data").string();
     // 0.25 MiB in flight at most; the sphere file is ~96 KB.
@@ -313,14 +334,8 @@ TEST_F(DiskTest, UploadBytesInFlightAreCappedAndTheHeldBytesKeptForAResume) {
     // One call holds 200 KB received and not stored (no finish_write).
     auto stub = v1::Surfel::NewStub(
         grpc::CreateChannel(server.target(), grpc::InsecureChannelCredentials()));
-    grpc::ClientContext ctx;
-    v1::Cloud response;
-    auto writer = stub->Upload(&ctx, &response);
-    v1::UploadRequest held;
-    held.set_upload_id("held-open");
-    held.set_filename("x.ply");
-    held.set_data(std::string(200 << 10, 'x'));
-    ASSERT_TRUE(writer->Write(held));
+    HeldUpload held;
+    ASSERT_TRUE(held.Open(*stub, 200 << 10, 'x'));
     std::int64_t committed = 0;
     // Polled until the whole chunk is on disk (the part file's size grows during the write).
     for (int i = 0; i < 300 && committed != (200 << 10); ++i) {
@@ -337,8 +352,7 @@ TEST_F(DiskTest, UploadBytesInFlightAreCappedAndTheHeldBytesKeptForAResume) {
     EXPECT_EQ(refused.error_code(), grpc::StatusCode::RESOURCE_EXHAUSTED);
     EXPECT_NE(refused.error_message().find("--max-upload-inflight-mb"), std::string::npos)
         << refused.error_message();
-    ctx.TryCancel();
-    writer->Finish();
+    held.Close();
     // The held call ended: its bytes stay on disk for a resume but are no longer in flight.
     bool stored = false;
     for (int i = 0; i < 100 && !stored; ++i) {
@@ -386,14 +400,8 @@ TEST_F(DiskTest, AbandonedUploadPartFilesExpireButNotWhileAnUploadHoldsThem) {
     EXPECT_EQ(Committed(*stub, "fresh"), 700);
 
     // A call in progress holds its upload id: its part file stays however old it looks.
-    grpc::ClientContext ctx;
-    v1::Cloud response;
-    auto writer = stub->Upload(&ctx, &response);
-    v1::UploadRequest held;
-    held.set_upload_id("held-open");
-    held.set_filename("x.ply");
-    held.set_data(std::string(4096, 'z'));
-    ASSERT_TRUE(writer->Write(held));
+    HeldUpload held;
+    ASSERT_TRUE(held.Open(*stub, 4096, 'z'));
     const fs::path part = uploads / "held-open.part";
     for (int i = 0; i < 300 && Committed(*stub, "held-open") != 4096; ++i)
         std::this_thread::sleep_for(std::chrono::milliseconds(10));
@@ -402,8 +410,7 @@ TEST_F(DiskTest, AbandonedUploadPartFilesExpireButNotWhileAnUploadHoldsThem) {
     std::this_thread::sleep_for(std::chrono::milliseconds(600));  // several sweeps
     EXPECT_TRUE(fs::exists(part));
     // Once the call has ended, the part file is abandoned like any other.
-    ctx.TryCancel();
-    writer->Finish();
+    held.Close();
     for (int i = 0; i < 100 && fs::exists(part); ++i)
         std::this_thread::sleep_for(std::chrono::milliseconds(50));
     EXPECT_FALSE(fs::exists(part));

@@ -189,17 +189,9 @@ std::span<const std::uint32_t> ParticleEngine::GraphRow(std::uint32_t i,
     const std::size_t k = static_cast<std::size_t>(graph_k_);
     if (shared_knn_) return shared_knn_->Row(i).first(k);
     if (!graph_state_ || graph_state_[i].load(std::memory_order_acquire) == 2) return graph_.Row(i);
-    // The row KdTree::KnnAll gives: the k + 1 nearest, the point itself taken out.
     thread_local std::vector<Neighbor> near;
-    tree_->Knn(input_.positions[i], graph_k_ + 1, &near);
-    const auto self =
-        std::find_if(near.begin(), near.end(), [i](const Neighbor& nb) { return nb.index == i; });
-    if (self != near.end())
-        near.erase(self);
-    else if (near.size() > k)
-        near.pop_back();
-    buffer.assign(k, UINT32_MAX);
-    for (std::size_t j = 0; j < std::min(k, near.size()); ++j) buffer[j] = near[j].index;
+    buffer.resize(k);
+    tree_->KnnRow(i, graph_k_, buffer.data(), nullptr, near);  // KnnAll(graph_k_)'s row
     std::uint8_t expected = 0;
     if (graph_state_[i].compare_exchange_strong(expected, 1, std::memory_order_acq_rel)) {
         std::copy(buffer.begin(), buffer.end(),

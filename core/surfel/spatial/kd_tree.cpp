@@ -177,11 +177,11 @@ Neighbor KdTree::Nearest(const Vec3f& q) const {
 }
 
 namespace {
-// Row i of `table`: the table.k nearest points of q, without point i itself when `exclude_self`
-// (q is then point i): the k smallest by (distance, index) among the others.
-void FillRow(const KdTree& tree, const Vec3f& q, std::size_t i, bool exclude_self, std::vector<Neighbor>& buf,
-             KnnTable& table) {
-    const int k = table.k;
+// The k nearest points of q into indices[0, k) and dist2[0, k) (when not null), without point
+// i itself when `exclude_self` (q is then point i): the k smallest by (distance, index) among
+// the others; UINT32_MAX / infinity where there are fewer.
+void FillRow(const KdTree& tree, const Vec3f& q, std::size_t i, int k, bool exclude_self, std::vector<Neighbor>& buf,
+             std::uint32_t* indices, float* dist2) {
     tree.Knn(q, exclude_self ? k + 1 : k, &buf);
     if (exclude_self) {
         auto self = std::find_if(buf.begin(), buf.end(), [i](const Neighbor& nb) { return nb.index == i; });
@@ -189,10 +189,17 @@ void FillRow(const KdTree& tree, const Vec3f& q, std::size_t i, bool exclude_sel
         else if (static_cast<int>(buf.size()) > k) buf.pop_back();
     }
     const std::size_t m = std::min<std::size_t>(buf.size(), k);
-    for (std::size_t j = 0; j < m; ++j) {
-        table.indices[i * k + j] = buf[j].index;
-        table.dist2[i * k + j] = buf[j].dist2;
+    for (std::size_t j = 0; j < static_cast<std::size_t>(k); ++j) {
+        indices[j] = j < m ? buf[j].index : UINT32_MAX;
+        if (dist2) dist2[j] = j < m ? buf[j].dist2 : std::numeric_limits<float>::infinity();
     }
+}
+
+// Row i of `table` (FillRow).
+void FillRow(const KdTree& tree, const Vec3f& q, std::size_t i, bool exclude_self, std::vector<Neighbor>& buf,
+             KnnTable& table) {
+    const std::size_t at = i * static_cast<std::size_t>(table.k);
+    FillRow(tree, q, i, table.k, exclude_self, buf, table.indices.data() + at, table.dist2.data() + at);
 }
 
 KnnTable RunBatch(const KdTree& tree, std::size_t n, int k, bool exclude_self, const Vec3f* queries,
@@ -215,7 +222,7 @@ KnnTable RunBatch(const KdTree& tree, std::size_t n, int k, bool exclude_self, c
 KnnTable KdTree::KnnAll(int k, const ProgressFn& progress) const {
     SURFEL_CHECK(k > 0, "k = " << k);
     const std::size_t n = size();
-    const auto grid = NeighborGrid(impl_->points, k, 8);
+    const auto grid = NeighborGrid(impl_->points, k);
     if (!grid) return RunBatch(*this, n, k, true, impl_->points.data(), progress);
     // Most rows from the grid's blocks (the same table: same ranking, same float distances), the
     // rest (near a sparse region's edge) from the tree, as RunBatch answers them.
@@ -236,6 +243,11 @@ KnnTable KdTree::KnnAll(int k, const ProgressFn& progress) const {
         tracker.Advance(0.2 * static_cast<double>(r.size()) * static_cast<double>(n) / static_cast<double>(rest.size()));
     });
     return table;
+}
+
+void KdTree::KnnRow(std::size_t i, int k, std::uint32_t* indices, float* dist2, std::vector<Neighbor>& buf) const {
+    SURFEL_CHECK(k > 0 && i < size(), "k = " << k << ", i = " << i);
+    FillRow(*this, impl_->points[i], i, k, true, buf, indices, dist2);
 }
 
 KnnTable KdTree::KnnBatch(std::span<const Vec3f> queries, int k, const ProgressFn& progress) const {

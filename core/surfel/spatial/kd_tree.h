@@ -72,6 +72,11 @@ public:
     /// (k = 16) about 0.53 G instructions against the tree's 1.48 G.
     KnnTable KnnAll(int k, const ProgressFn& progress = {}) const;
 
+    /// Row i of KnnAll(k) alone, the same neighbours in the same order: indices[0, k) and, when
+    /// not null, dist2[0, k) (UINT32_MAX / infinity where there are fewer than k others); `buf`
+    /// is scratch. For callers that need the rows of a few points of a large cloud.
+    void KnnRow(std::size_t i, int k, std::uint32_t* indices, float* dist2, std::vector<Neighbor>& buf) const;
+
     /// k nearest neighbours of each query; parallel.
     KnnTable KnnBatch(std::span<const Vec3f> queries, int k, const ProgressFn& progress = {}) const;
 

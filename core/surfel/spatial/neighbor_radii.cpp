@@ -67,7 +67,7 @@ std::vector<float> ViaTree(std::span<const Vec3f> points, int k, const KdTree* t
 
 }  // namespace
 
-std::unique_ptr<UniformGrid> NeighborGrid(std::span<const Vec3f> points, int k, std::uint64_t cells_per_point) {
+std::unique_ptr<UniformGrid> NeighborGrid(std::span<const Vec3f> points, int k) {
     const std::size_t n = points.size();
     if (n < 2 || k < 1 || k > kMaxK) return nullptr;
     BoundingBox box;
@@ -81,7 +81,7 @@ std::unique_ptr<UniformGrid> NeighborGrid(std::span<const Vec3f> points, int k, 
     auto dense_cell = [&](float c) {
         c = std::max(c, diag * 1e-6f);
         for (int t = 0; t < 12; ++t, c *= 1.25f)
-            if (UniformGrid::FitsDense(box, n, c, cells_per_point)) return c;
+            if (UniformGrid::FitsDense(box, n, c, kCellsPerPoint)) return c;
         return 0.0f;
     };
     // A first cell from the box, as if the points sampled a surface of area ~ diag^2: spacing
@@ -116,7 +116,7 @@ std::vector<float> KthNeighborDistances(std::span<const Vec3f> points, int k, co
     }
     const float diag = box.Diagonal();
     if (!(diag > 0.0f)) return std::vector<float>(n, 0.0f);  // all points coincide
-    const auto grid = NeighborGrid(points, k, kCellsPerPoint);
+    const auto grid = NeighborGrid(points, k);
     if (!grid) return ViaTree(points, k, tree);
     const float reach = 2.0f * diag;
     // Most points find their k-th neighbour in the block of cells around them; the rest search

@@ -4,7 +4,6 @@
 /// once: the radius r_i of the sampling density (course notes 1.1.1) and of the renderer's
 /// bounding balls (Adamson & Alexa, section 5).
 
-#include <cstdint>
 #include <memory>
 #include <span>
 #include <vector>
@@ -21,7 +20,7 @@ class UniformGrid;
 /// on an even sample of 256 points), at most 8 cells a point. nullptr where no such grid suits the
 /// cloud (fewer than 2 points, k outside 1..64, a non-finite coordinate, all points coincident,
 /// or a box too large for the dense layout at any cell up to ~12x the guess).
-std::unique_ptr<UniformGrid> NeighborGrid(std::span<const Vec3f> points, int k, std::uint64_t cells_per_point);
+std::unique_ptr<UniformGrid> NeighborGrid(std::span<const Vec3f> points, int k);
 
 /// For each point i, the distance to its k-th nearest neighbour among the other points (a
 /// duplicate of p_i counts, at distance 0); k is clamped to points.size() - 1, and every

@@ -177,22 +177,9 @@ Vec3f EstimateNormalAt(const KdTree& tree, std::size_t i, const NormalOptions& o
     const std::size_t n = tree.size();
     SURFEL_CHECK(n >= 3 && i < n, "i = " << i << ", n = " << n);
     const int k = std::min<int>(opt.k, static_cast<int>(n) - 1);
-    // The row KdTree::KnnAll(k) gives point i: its k + 1 nearest, the point itself taken out
-    // (or the farthest, where ties hid it).
-    std::vector<Neighbor>& buf = scratch.neighbors;
-    tree.Knn(tree.points()[i], k + 1, &buf);
-    const auto self =
-        std::find_if(buf.begin(), buf.end(), [i](const Neighbor& nb) { return nb.index == i; });
-    if (self != buf.end())
-        buf.erase(self);
-    else if (static_cast<int>(buf.size()) > k)
-        buf.pop_back();
-    scratch.row.assign(k, UINT32_MAX);
-    scratch.dist2.assign(k, std::numeric_limits<float>::infinity());
-    for (std::size_t j = 0; j < std::min<std::size_t>(buf.size(), k); ++j) {
-        scratch.row[j] = buf[j].index;
-        scratch.dist2[j] = buf[j].dist2;
-    }
+    scratch.row.resize(k);
+    scratch.dist2.resize(k);
+    tree.KnnRow(i, k, scratch.row.data(), scratch.dist2.data(), scratch.neighbors);  // KnnAll(k)'s row
     return NormalAt(tree.points(), i, scratch.row, scratch.dist2, opt, scratch, variation);
 }
 

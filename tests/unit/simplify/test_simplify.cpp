@@ -223,16 +223,23 @@ TEST(Simplify, HierarchicalParallelSplitsGiveTheSameClustersWhateverTheThreadCou
     }
 }
 
+// An item as the hierarchical split pass stores it (split_pass.h), and seeded uniform draws, for
+// the split-pass tests.
+struct SplitItem {
+    float x, y, z;
+    std::uint32_t id;
+};
+struct UniformDraw {
+    std::mt19937_64 rng;
+    double operator()(double lo, double hi) { return lo + (hi - lo) * double(rng() >> 11) * 0x1p-53; }
+};
+
 // The split pass of hierarchical clustering (split_pass.h): the AVX2 build (where the CPU has it)
 // and the baseline give the same bits, and both match a plain loop: the negative side in order at
 // the front, the positive side from the end backwards, each side's sums about o over its own items.
 TEST(Simplify, HierarchicalSplitPassBuildsAgreeToTheBitAndMatchAPlainLoop) {
-    struct Item {
-        float x, y, z;
-        std::uint32_t id;
-    };
-    std::mt19937_64 rng(7);
-    const auto uniform = [&](double lo, double hi) { return lo + (hi - lo) * double(rng() >> 11) * 0x1p-53; };
+    using Item = SplitItem;
+    UniformDraw uniform{std::mt19937_64(7)};
     std::vector<Item> items(1003);
     for (std::uint32_t i = 0; i < items.size(); ++i)
         items[i] = {float(uniform(-1, 1)), float(uniform(-2, 2)), float(uniform(0, 1)), i};
@@ -276,12 +283,8 @@ TEST(Simplify, HierarchicalSplitPassBuildsAgreeToTheBitAndMatchAPlainLoop) {
 // for every count from 0 to 13 (all tails of the four-item loop), a cut that puts everything on
 // one side, and either side the longer.
 TEST(Simplify, HierarchicalSplitPassSumsAreASequentialLoopsToTheBit) {
-    struct Item {
-        float x, y, z;
-        std::uint32_t id;
-    };
-    std::mt19937_64 rng(11);
-    const auto uniform = [&](double lo, double hi) { return lo + (hi - lo) * double(rng() >> 11) * 0x1p-53; };
+    using Item = SplitItem;
+    UniformDraw uniform{std::mt19937_64(11)};
     const float o[3] = {0.05f, -0.1f, 0.2f}, axis[3] = {0.0f, 0.6f, 0.8f};
     for (const split_pass::Kernels* k : {&split_pass::Baseline(), &split_pass::Best()}) {
         for (const float cut : {-10.0f, -0.3f, 0.0f, 0.4f, 10.0f}) {
