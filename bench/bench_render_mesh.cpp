@@ -38,6 +38,7 @@
 #include "surfel/io/ply.h"
 #include "surfel/render/renderer.h"
 #include "surfel/spatial/kd_tree.h"
+#include "surfel/surface/local_analysis.h"
 
 namespace surfel::bench {
 namespace {
@@ -230,9 +231,11 @@ Score Compare(const std::vector<float>& truth, const std::vector<float>& z, doub
 // fixed: the paper's surface (one h = 2 x median spacing, plain weights, no boundary);
 // adaptive: AaBandwidth::kAdaptive;
 // +ball: regions of trust at least ball_h = 1 h_i wide; +nw: normal-aware weights (sigma 0.5);
-// +bdX: AaOptions::boundary = X. Core's default is fixed+nw+bd0.5.
+// +bdX: AaOptions::boundary = X; +hX: h = X x the default scale (2 x median spacing), so h1 is
+// the default. Core's default is fixed+nw+bd0.5.
 // Suffixes combine in this order, e.g. adaptive+ball+nw.
-bool ApplyVariant(const std::string& name, AaOptions* o) {
+// `h_factor` (may be null) receives X of +hX, else 1.
+bool ApplyVariant(const std::string& name, AaOptions* o, float* h_factor = nullptr) {
     std::vector<std::string> parts;
     std::stringstream ss(name);
     for (std::string x; std::getline(ss, x, '+');) parts.push_back(x);
@@ -241,6 +244,7 @@ bool ApplyVariant(const std::string& name, AaOptions* o) {
     o->normal_sigma = 0.0f;
     o->boundary = 0.0f;
     o->ball_h = 0.0f;
+    if (h_factor) *h_factor = 1.0f;
     if (parts[0] == "fixed") o->bandwidth = AaBandwidth::kFixed;
     else if (parts[0] == "adaptive") o->bandwidth = AaBandwidth::kAdaptive;
     else return false;
@@ -251,7 +255,11 @@ bool ApplyVariant(const std::string& name, AaOptions* o) {
         else if (p == "nw") o->normal_sigma = kNormalAwareSigma;
         else if (p.rfind("bd", 0) == 0) o->boundary = std::stof(p.substr(2));
         else if (p.rfind("nw", 0) == 0) o->normal_sigma = std::stof(p.substr(2));
-        else return false;
+        else if (p.rfind("h", 0) == 0 && p.size() > 1) {
+            const float f = std::stof(p.substr(1));
+            if (!(f > 0)) return false;
+            if (h_factor) *h_factor = f;
+        } else return false;
     }
     return true;
 }
@@ -446,6 +454,7 @@ int Main(int argc, char** argv) {
         views.emplace_back("thin close-up", ThinCloseUp(mesh, truth, size, size, &where));
         notes << "- " << m << ": thin close-up at " << where << "; Poisson " << peer.triangles << " triangles, "
               << int(peer.ms) << " ms (normals + reconstruction)\n";
+        float default_h = 0.0f;  // DefaultScale of the cloud, for +hX variants (computed on first use)
         std::unique_ptr<KdTree> tree;
         if (!diag_dir.empty()) tree = std::make_unique<KdTree>(cloud.positions);
         for (const auto& [view, cam] : views) {
@@ -469,7 +478,12 @@ int Main(int argc, char** argv) {
                 RenderOptions ro;
                 ro.camera = cam;
                 ro.shadows = false;
-                ApplyVariant(v, &ro.surface);
+                float h_factor = 1.0f;
+                ApplyVariant(v, &ro.surface, &h_factor);
+                if (h_factor != 1.0f) {
+                    if (default_h == 0.0f) default_h = DefaultScale(KdTree(cloud.positions));
+                    ro.surface.h = h_factor * default_h;
+                }
                 const RenderResult r = Render(cloud, ro);
                 std::vector<float> z(zt.size());
                 for (int y = 0; y < cam.height; ++y)
