@@ -281,7 +281,7 @@ TEST(Simplify, HierarchicalSplitPassBuildsAgreeToTheBitAndMatchAPlainLoop) {
 // visiting order, to the bit (the pass partitions first and sums each side's contiguous items
 // afterwards, the positive side backwards; the AVX2 build tests four items at a time with a tail),
 // for every count from 0 to 13 (all tails of the four-item loop), a cut that puts everything on
-// one side, and either side the longer.
+// one side, and either side the longer; and the sums alone (split_pass.h's SumsFn).
 TEST(Simplify, HierarchicalSplitPassSumsAreASequentialLoopsToTheBit) {
     using Item = SplitItem;
     UniformDraw uniform{std::mt19937_64(11)};
@@ -310,6 +310,20 @@ TEST(Simplify, HierarchicalSplitPassSumsAreASequentialLoopsToTheBit) {
                 std::sort(ids.begin(), ids.end());
                 for (std::uint32_t i = 0; i < n; ++i) EXPECT_EQ(ids[i], i) << k->isa << " n " << n;  // a permutation
             }
+        }
+        // The sums alone (a node's own statistics): all items as one side, in item order.
+        for (std::size_t n = 0; n <= 13; ++n) {
+            std::vector<Item> items(n);
+            for (std::uint32_t i = 0; i < n; ++i)
+                items[i] = {float(uniform(-1, 1)), float(uniform(-1, 1)), float(uniform(-1, 1)), i};
+            double sums[9], ref[9] = {};
+            for (const Item& it : items) {
+                const double x = double(it.x - o[0]), y = double(it.y - o[1]), z = double(it.z - o[2]);
+                const double terms[9] = {x, y, z, x * x, y * x, z * x, y * y, z * y, z * z};
+                for (int j = 0; j < 9; ++j) ref[j] += terms[j];
+            }
+            k->sums(items.data(), n, o, sums);
+            EXPECT_EQ(std::memcmp(sums, ref, sizeof ref), 0) << k->isa << " sums n " << n;
         }
     }
 }
