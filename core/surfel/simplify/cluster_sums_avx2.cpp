@@ -1,5 +1,5 @@
-// cluster_sums.inc for AVX2 (compiled with -mavx2 -mno-fma -ffp-contract=off on x86-64; elsewhere the
-// same portable loops as the baseline).
+// cluster_sums.inc for AVX2 (compiled with -mavx2 -mno-fma -ffp-contract=off on x86-64; elsewhere
+// the same portable loops as the baseline).
 #include <cstddef>
 #include <cstdint>
 

@@ -1,7 +1,6 @@
 // cluster_sums.inc for the baseline, and the choice between the builds.
-#include "surfel/simplify/cluster_sums.h"
-
 #include "surfel/base/kernel_build.h"
+#include "surfel/simplify/cluster_sums.h"
 
 #define SURFEL_CLUSTER_ISA baseline
 #include "surfel/simplify/cluster_sums.inc"
@@ -9,9 +8,10 @@
 namespace surfel::cluster_sums {
 
 namespace avx2 {  // cluster_sums_avx2.cpp
-void Moments(const float* xyz, const std::uint32_t* const* index, const std::uint32_t* size, double* out);
-void Fit(const float* xyz, const std::uint32_t* const* index, const std::uint32_t* size, const double* frame,
-         double* out);
+void Moments(const float* xyz, const std::uint32_t* const* index, const std::uint32_t* size,
+             double* out);
+void Fit(const float* xyz, const std::uint32_t* const* index, const std::uint32_t* size,
+         const double* frame, double* out);
 }  // namespace avx2
 
 const Kernels& Baseline() {
