@@ -346,11 +346,16 @@ TEST(Simplify, OnSurfaceClusterSumsAreEachClustersSequentialLoopToTheBit) {
         for (std::uint32_t j = 0; j < size[l]; ++j) index[l].push_back(std::uint32_t(uniform(0, 200)) % 200);
         mine[l] = index[l].data();
     }
-    // Each lane's frame: an origin, an orthonormal basis from a normal, 1 / h.
+    // Each lane's frame: an origin, an orthonormal basis with no zero component (FromNormal's u
+    // has one, which would hide the order of a dot product's terms), 1 / h.
     double frame[13 * kLanes] = {};
     for (int l = 0; l < kLanes; ++l) {
-        const Vec3d o(uniform(-1, 1), uniform(-1, 1), uniform(-1, 1));
-        const LocalFrame f = LocalFrame::FromNormal(o, Vec3d(uniform(-1, 1), uniform(-1, 1), 0.5));
+        LocalFrame f;
+        f.origin = Vec3d(uniform(-1, 1), uniform(-1, 1), uniform(-1, 1));
+        f.n = Vec3d(uniform(-1, 1), uniform(-1, 1), 0.5).normalized();
+        const Vec3d r(uniform(-1, 1), 0.7, uniform(-1, 1));
+        f.u = (r - r.dot(f.n) * f.n).normalized();
+        f.v = f.n.cross(f.u);
         const Vec3d* axes[4] = {&f.origin, &f.u, &f.v, &f.n};
         for (int a = 0; a < 4; ++a)
             for (int k = 0; k < 3; ++k) frame[(3 * a + k) * kLanes + l] = (*axes[a])[k];
