@@ -76,8 +76,12 @@ double PeakResidentMiB() {
 // Each cluster's members in input order (a counting sort by cluster); cluster_sums.h adds their
 // terms, kLanes clusters of about the same size at a time, with the bits of adding each point to
 // its cluster's Moments and PolyFit::Add in input order.
+// Sets rep[c] and done[c] = 1 for every fitted cluster c: the lifted point, or where the fit fails
+// the centroid (from the same sums as BuildFromClusters' centroids: the members' positions in
+// double, added in input order, divided by the count; the same bits).
 void RepresentativesOnSurface(std::span<const Vec3f> points, const Clustering& clusters,
-                              std::span<const std::uint32_t> count, std::vector<Vec3f>& rep) {
+                              std::span<const std::uint32_t> count, std::vector<Vec3f>& rep,
+                              std::vector<char>& done) {
     constexpr std::uint32_t kMinFit = 20;
     constexpr int kLanes = cluster_sums::kLanes;
     const std::size_t n = points.size(), m = clusters.count;
@@ -146,7 +150,11 @@ void RepresentativesOnSurface(std::span<const Vec3f> points, const Clustering& c
                 for (int k = 0; k < 21; ++k) sums[k] = t[k * kLanes + l];
                 fit.AddSums(sums);
                 PolyCoeffs g;
-                if (!fit.Solve(&g) || !(std::abs(g.c[0]) <= thickness[l])) continue;
+                done[cluster[l]] = 1;
+                if (!fit.Solve(&g) || !(std::abs(g.c[0]) <= thickness[l])) {
+                    rep[cluster[l]] = lf[l].origin.cast<float>();  // the centroid
+                    continue;
+                }
                 rep[cluster[l]] = lf[l].ToWorld(0.0, 0.0, g.c[0]).cast<float>();
             }
         }
@@ -162,18 +170,22 @@ PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> nor
     std::vector<Vec3d> sum(m, Vec3d::Zero()), nsum(normals.empty() ? 0 : m, Vec3d::Zero());
     std::vector<std::array<double, 4>> csum(input.has_colors() ? m : 0, {0, 0, 0, 0});
     std::vector<std::uint32_t> count(m, 0);
+    for (std::size_t i = 0; i < n; ++i) ++count[clusters.label[i]];
+    // The fitted clusters' representatives first (at 1 % nearly all points are in one): the sums
+    // below then skip their positions.
+    out.positions.resize(m);
+    std::vector<char> done(m, 0);
+    if (positions.empty()) RepresentativesOnSurface(input.positions, clusters, count, out.positions, done);
     for (std::size_t i = 0; i < n; ++i) {
         const std::uint32_t c = clusters.label[i];
-        sum[c] += input.positions[i].cast<double>();
+        if (!done[c]) sum[c] += input.positions[i].cast<double>();
         if (!normals.empty()) nsum[c] += normals[i].cast<double>();
         if (input.has_colors())
             for (int k = 0; k < 4; ++k) csum[c][k] += input.colors[i][k];
-        ++count[c];
     }
-    out.positions.resize(m);
     for (std::size_t c = 0; c < m; ++c)
-        out.positions[c] = positions.empty() ? Vec3f((sum[c] / std::max(1u, count[c])).cast<float>()) : positions[c];
-    if (positions.empty()) RepresentativesOnSurface(input.positions, clusters, count, out.positions);
+        if (!done[c])
+            out.positions[c] = positions.empty() ? Vec3f((sum[c] / std::max(1u, count[c])).cast<float>()) : positions[c];
     if (positions_only) return out;
 
     // The nearest input point stands in for clusters without members (particles can end up
