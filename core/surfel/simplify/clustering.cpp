@@ -37,10 +37,18 @@ Spread Analyze(const Moments& m) {
     return s;
 }
 
-std::size_t Compact(std::vector<std::uint32_t>& label) {
-    std::vector<std::uint32_t> remap;
+std::size_t Compact(std::vector<std::uint32_t>& label, std::size_t bound) {
     constexpr std::uint32_t kUnset = std::numeric_limits<std::uint32_t>::max();
+    std::vector<std::uint32_t> remap(bound, kUnset);
     std::uint32_t next = 0;
+    if (bound > 0) {
+        for (auto& l : label) {
+            SURFEL_CHECK(l < bound);
+            if (remap[l] == kUnset) remap[l] = next++;
+            l = remap[l];
+        }
+        return next;
+    }
     for (auto& l : label) {
         if (l >= remap.size()) remap.resize(static_cast<std::size_t>(l) + 1, kUnset);
         if (remap[l] == kUnset) remap[l] = next++;
@@ -208,11 +216,18 @@ Node MakeNode(std::span<const Item> items, std::uint32_t begin, std::uint32_t en
     Node node;
     node.begin = begin;
     node.end = end;
-    Vec3f o = Vec3f::Zero();  // about the first item: the items are relative to the cloud's mean
-    if (end > begin) o = items[begin].p;
-    Sums sums;
-    for (std::uint32_t i = begin; i < end; ++i) sums.Add(items[i].p, o);
-    if (end > begin) sums.To(o, node);
+    if (end > begin) {
+        // About the first item (the items are relative to the cloud's mean), by the split pass's
+        // kernel: the terms and order of Sums::Add, the same bits.
+        const Vec3f o = items[begin].p;
+        const float of[3] = {o.x(), o.y(), o.z()};
+        double s[9];
+        split_pass::Best().sums(items.data() + begin, end - begin, of, s);
+        Sums sums;
+        sums.n = double(end - begin);
+        std::copy(s, s + 3, sums.d), std::copy(s + 3, s + 9, sums.dd);
+        sums.To(o, node);
+    }
     Finish(node, adaptive);
     return node;
 }
@@ -308,7 +323,7 @@ Clustering LabelsFromNodes(std::span<const Item> items, std::span<const Item> sc
         const std::span<const Item> buf = buffer(leaf);
         for (std::uint32_t i = leaf.begin; i < leaf.end; ++i) out.label[buf[i].id] = static_cast<std::uint32_t>(c);
     }
-    out.count = Compact(out.label);
+    out.count = Compact(out.label, leaves.size());
     if (!normals) return out;
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, leaves.size(), 256), [&](const tbb::blocked_range<std::size_t>& r) {
         for (std::size_t c = r.begin(); c != r.end(); ++c) EnsureSpread(leaves[c]);

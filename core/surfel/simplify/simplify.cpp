@@ -8,11 +8,13 @@
 #include <fstream>
 #include <limits>
 #include <numbers>
+#include <numeric>
 #include <optional>
 #include <string>
 
 #include "surfel/base/error.h"
 #include "surfel/base/validate.h"
+#include "surfel/simplify/cluster_sums.h"
 #include "surfel/simplify/simplify_internal.h"
 #include "surfel/spatial/kd_tree.h"
 #include "surfel/spatial/neighbor_radii.h"
@@ -71,12 +73,17 @@ double PeakResidentMiB() {
 // subsample). Clusters with fewer than kMinFit members, or whose fit is degenerate or moves the
 // point farther than the cluster's thickness, keep the centroid.
 //
-// One cluster at a time over its members in input order (a counting sort by cluster), so its
-// moments and fit sums stay in registers: the same terms added in the same order as adding every
-// point to its cluster's Moments and PolyFit::Add in input order, hence the same bits.
+// Each cluster's members in input order (a counting sort by cluster); cluster_sums.h adds their
+// terms, kLanes clusters of about the same size at a time, with the bits of adding each point to
+// its cluster's Moments and PolyFit::Add in input order.
+// Sets rep[c] and done[c] = 1 for every fitted cluster c: the lifted point, or where the fit fails
+// the centroid (from the same sums as BuildFromClusters' centroids: the members' positions in
+// double, added in input order, divided by the count; the same bits).
 void RepresentativesOnSurface(std::span<const Vec3f> points, const Clustering& clusters,
-                              std::span<const std::uint32_t> count, std::vector<Vec3f>& rep) {
+                              std::span<const std::uint32_t> count, std::vector<Vec3f>& rep,
+                              std::vector<char>& done) {
     constexpr std::uint32_t kMinFit = 20;
+    constexpr int kLanes = cluster_sums::kLanes;
     const std::size_t n = points.size(), m = clusters.count;
     // Members of the fitted clusters (slot s for cluster fitted[s]; kNone for the others), each
     // cluster's in input order.
@@ -92,35 +99,66 @@ void RepresentativesOnSurface(std::span<const Vec3f> points, const Clustering& c
     std::vector<std::uint32_t> members(start.back()), next(start.begin(), start.end() - 1);
     for (std::size_t i = 0; i < n; ++i)
         if (const std::uint32_t s = slot[clusters.label[i]]; s != kNone) members[next[s]++] = static_cast<std::uint32_t>(i);
-    for (std::size_t s = 0; s < fitted.size(); ++s) {
-        const std::span<const std::uint32_t> mine(members.data() + start[s], start[s + 1] - start[s]);
-        detail::Moments mom;
-        for (const std::uint32_t i : mine) mom.Add(points[i]);
-        const detail::Spread sp = detail::Analyze(mom);
-        const LocalFrame frame = LocalFrame::FromNormal(mom.Centroid(), sp.v0);
-        const double thickness = 3.0 * std::sqrt(sp.eigenvalues[0]);
-        PolyFit fit(2, std::max(std::sqrt(sp.eigenvalues[2]), 1e-30));
-        // PolyFit::AddBatch's terms for weight 1, in its order: the 15 moments, then the 6
-        // right-hand sides (PolyFit::AddSums).
-        const double ih = fit.inv_h();
-        double t[21] = {};
-        for (const std::uint32_t i : mine) {
-            const Vec3d l = frame.ToLocal(points[i].cast<double>());
-            const double xs = l.x() * ih, ys = l.y() * ih, wi = 1.0, zi = l.z();
-            const double wx = wi * xs, wy = wi * ys;
-            const double wxx = wx * xs, wxy = wx * ys, wyy = wy * ys;
-            t[0] += wi, t[1] += wx, t[2] += wy, t[3] += wxx, t[4] += wxy, t[5] += wyy;
-            t[6] += wxx * xs, t[7] += wxx * ys, t[8] += wxy * ys, t[9] += wyy * ys;
-            t[10] += wxx * xs * xs, t[11] += wxx * xs * ys, t[12] += wxx * ys * ys, t[13] += wxy * ys * ys;
-            t[14] += wyy * ys * ys;
-            t[15] += wi * zi, t[16] += wx * zi, t[17] += wy * zi, t[18] += wxx * zi, t[19] += wxy * zi;
-            t[20] += wyy * zi;
+    // Groups of kLanes clusters, largest first (a group's lanes run as long as its largest).
+    std::vector<std::uint32_t> by_size(fitted.size());
+    std::iota(by_size.begin(), by_size.end(), 0u);
+    std::stable_sort(by_size.begin(), by_size.end(), [&](std::uint32_t a, std::uint32_t b) {
+        return start[a + 1] - start[a] > start[b + 1] - start[b];
+    });
+    const std::size_t groups = (fitted.size() + kLanes - 1) / kLanes;
+    const cluster_sums::Kernels& kernels = cluster_sums::Best();
+    const float* xyz = points.data()->data();  // Vec3f: three packed floats
+    // The groups in parallel (each writes only its own clusters' representatives: the same bits
+    // whatever the thread count); at 1 % nearly every input point is in a fitted cluster.
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, groups, 8), [&](const tbb::blocked_range<std::size_t>& range) {
+        for (std::size_t group = range.begin(); group != range.end(); ++group) {
+            std::uint32_t cluster[kLanes], size[kLanes];
+            const std::uint32_t* mine[kLanes];
+            for (int l = 0; l < kLanes; ++l) {
+                const std::size_t k = group * kLanes + l;
+                const std::uint32_t s = k < by_size.size() ? by_size[k] : kNone;
+                cluster[l] = s == kNone ? kNone : fitted[s];
+                size[l] = s == kNone ? 0 : start[s + 1] - start[s];
+                mine[l] = s == kNone ? nullptr : members.data() + start[s];
+            }
+            double mo[9 * kLanes], frame[13 * kLanes] = {}, t[21 * kLanes];
+            kernels.moments(xyz, mine, size, mo);
+            // Each cluster's plane (Moments, Analyze), frame and the fit's scale.
+            LocalFrame lf[kLanes];
+            double h[kLanes] = {}, thickness[kLanes] = {};
+            for (int l = 0; l < kLanes; ++l) {
+                if (size[l] == 0) continue;
+                const auto at = [&](int k) { return mo[k * kLanes + l]; };
+                detail::Moments mom;
+                mom.n = double(size[l]);
+                mom.sum = Eigen::Vector3d(at(0), at(1), at(2));
+                mom.outer << at(3), at(4), at(5), at(4), at(6), at(7), at(5), at(7), at(8);
+                const detail::Spread sp = detail::Analyze(mom);
+                lf[l] = LocalFrame::FromNormal(mom.Centroid(), sp.v0);
+                thickness[l] = 3.0 * std::sqrt(sp.eigenvalues[0]);
+                h[l] = std::max(std::sqrt(sp.eigenvalues[2]), 1e-30);
+                const Vec3d* axes[4] = {&lf[l].origin, &lf[l].u, &lf[l].v, &lf[l].n};
+                for (int a = 0; a < 4; ++a)
+                    for (int k = 0; k < 3; ++k) frame[(3 * a + k) * kLanes + l] = (*axes[a])[k];
+                frame[12 * kLanes + l] = PolyFit(2, h[l]).inv_h();
+            }
+            kernels.fit(xyz, mine, size, frame, t);
+            for (int l = 0; l < kLanes; ++l) {
+                if (size[l] == 0) continue;
+                PolyFit fit(2, h[l]);
+                double sums[21];
+                for (int k = 0; k < 21; ++k) sums[k] = t[k * kLanes + l];
+                fit.AddSums(sums);
+                PolyCoeffs g;
+                done[cluster[l]] = 1;
+                if (!fit.Solve(&g) || !(std::abs(g.c[0]) <= thickness[l])) {
+                    rep[cluster[l]] = lf[l].origin.cast<float>();  // the centroid
+                    continue;
+                }
+                rep[cluster[l]] = lf[l].ToWorld(0.0, 0.0, g.c[0]).cast<float>();
+            }
         }
-        fit.AddSums(t);
-        PolyCoeffs g;
-        if (!fit.Solve(&g) || !(std::abs(g.c[0]) <= thickness)) continue;
-        rep[fitted[s]] = frame.ToWorld(0.0, 0.0, g.c[0]).cast<float>();
-    }
+    });
 }
 
 PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> normals, const Clustering& clusters,
@@ -132,18 +170,22 @@ PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> nor
     std::vector<Vec3d> sum(m, Vec3d::Zero()), nsum(normals.empty() ? 0 : m, Vec3d::Zero());
     std::vector<std::array<double, 4>> csum(input.has_colors() ? m : 0, {0, 0, 0, 0});
     std::vector<std::uint32_t> count(m, 0);
+    for (std::size_t i = 0; i < n; ++i) ++count[clusters.label[i]];
+    // The fitted clusters' representatives first (at 1 % nearly all points are in one): the sums
+    // below then skip their positions.
+    out.positions.resize(m);
+    std::vector<char> done(m, 0);
+    if (positions.empty()) RepresentativesOnSurface(input.positions, clusters, count, out.positions, done);
     for (std::size_t i = 0; i < n; ++i) {
         const std::uint32_t c = clusters.label[i];
-        sum[c] += input.positions[i].cast<double>();
+        if (!done[c]) sum[c] += input.positions[i].cast<double>();
         if (!normals.empty()) nsum[c] += normals[i].cast<double>();
         if (input.has_colors())
             for (int k = 0; k < 4; ++k) csum[c][k] += input.colors[i][k];
-        ++count[c];
     }
-    out.positions.resize(m);
     for (std::size_t c = 0; c < m; ++c)
-        out.positions[c] = positions.empty() ? Vec3f((sum[c] / std::max(1u, count[c])).cast<float>()) : positions[c];
-    if (positions.empty()) RepresentativesOnSurface(input.positions, clusters, count, out.positions);
+        if (!done[c])
+            out.positions[c] = positions.empty() ? Vec3f((sum[c] / std::max(1u, count[c])).cast<float>()) : positions[c];
     if (positions_only) return out;
 
     // The nearest input point stands in for clusters without members (particles can end up

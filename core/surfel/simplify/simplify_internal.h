@@ -117,8 +117,9 @@ inline Eigen::Vector3d MinimizeQuadric(const Eigen::Matrix3d& a, const Eigen::Ve
 // Random, the portable generator, comes with the particle engine (surfel/resample/particle_engine.h).
 
 /// Relabels `label` to 0..count-1 in order of first appearance of each cluster's smallest member
-/// index (deterministic), returns count.
-std::size_t Compact(std::vector<std::uint32_t>& label);
+/// index (deterministic), returns count. `bound`, when not 0, is more than every label (the remap
+/// table is sized once instead of grown as labels come).
+std::size_t Compact(std::vector<std::uint32_t>& label, std::size_t bound = 0);
 
 /// Brings a clustering to exactly `target` clusters: with too many, the clusters with the
 /// smallest `weight` (size, or size x variation) are dissolved and their points go to the nearest

@@ -25,8 +25,13 @@ namespace surfel::split_pass {
 using SplitFn = std::uint32_t (*)(const void* src, std::size_t n, void* dst, const float* o, const float* axis,
                                   float cut, double* sums);
 
+/// The sums of one side of Split over all `n` items at `items`, in item order: sums[0..8] as
+/// Split's negative side (a node's own statistics without a split).
+using SumsFn = void (*)(const void* items, std::size_t n, const float* o, double* sums);
+
 struct Kernels {
     SplitFn split;
+    SumsFn sums;
     const char* isa;  ///< "avx2" or "baseline"
 };
 

@@ -9,9 +9,11 @@
 #include "surfel/base/error.h"
 #include "surfel/base/shapes.h"
 #include "surfel/simplify/simplify.h"
+#include "surfel/simplify/cluster_sums.h"
 #include "surfel/simplify/split_pass.h"
 #include "surfel/spatial/kd_tree.h"
 #include "surfel/surface/local_analysis.h"
+#include "surfel/surface/poly_fit.h"
 #include "iterative_reference.h"
 
 namespace surfel {
@@ -281,7 +283,7 @@ TEST(Simplify, HierarchicalSplitPassBuildsAgreeToTheBitAndMatchAPlainLoop) {
 // visiting order, to the bit (the pass partitions first and sums each side's contiguous items
 // afterwards, the positive side backwards; the AVX2 build tests four items at a time with a tail),
 // for every count from 0 to 13 (all tails of the four-item loop), a cut that puts everything on
-// one side, and either side the longer.
+// one side, and either side the longer; and the sums alone (split_pass.h's SumsFn).
 TEST(Simplify, HierarchicalSplitPassSumsAreASequentialLoopsToTheBit) {
     using Item = SplitItem;
     UniformDraw uniform{std::mt19937_64(11)};
@@ -311,6 +313,82 @@ TEST(Simplify, HierarchicalSplitPassSumsAreASequentialLoopsToTheBit) {
                 for (std::uint32_t i = 0; i < n; ++i) EXPECT_EQ(ids[i], i) << k->isa << " n " << n;  // a permutation
             }
         }
+        // The sums alone (a node's own statistics): all items as one side, in item order.
+        for (std::size_t n = 0; n <= 13; ++n) {
+            std::vector<Item> items(n);
+            for (std::uint32_t i = 0; i < n; ++i)
+                items[i] = {float(uniform(-1, 1)), float(uniform(-1, 1)), float(uniform(-1, 1)), i};
+            double sums[9], ref[9] = {};
+            for (const Item& it : items) {
+                const double x = double(it.x - o[0]), y = double(it.y - o[1]), z = double(it.z - o[2]);
+                const double terms[9] = {x, y, z, x * x, y * x, z * x, y * y, z * y, z * z};
+                for (int j = 0; j < 9; ++j) ref[j] += terms[j];
+            }
+            k->sums(items.data(), n, o, sums);
+            EXPECT_EQ(std::memcmp(sums, ref, sizeof ref), 0) << k->isa << " sums n " << n;
+        }
+    }
+}
+
+// The on-surface representatives' sums (cluster_sums.h), four clusters a call, lanes of unequal
+// sizes (one empty): both builds give the bits of a scalar loop over each cluster's members in
+// order, the moments as Moments::Add (about the origin) and the fit's as PolyFit::AddBatch with
+// weight 1 in the lane's frame (LocalFrame::ToLocal, then x / h, y / h).
+TEST(Simplify, OnSurfaceClusterSumsAreEachClustersSequentialLoopToTheBit) {
+    constexpr int kLanes = cluster_sums::kLanes;
+    UniformDraw uniform{std::mt19937_64(13)};
+    std::vector<float> xyz(3 * 200);
+    for (float& v : xyz) v = float(uniform(-2, 3));
+    const std::uint32_t size[kLanes] = {37, 0, 23, 41};
+    std::vector<std::uint32_t> index[kLanes];
+    const std::uint32_t* mine[kLanes];
+    for (int l = 0; l < kLanes; ++l) {
+        for (std::uint32_t j = 0; j < size[l]; ++j) index[l].push_back(std::uint32_t(uniform(0, 200)) % 200);
+        mine[l] = index[l].data();
+    }
+    // Each lane's frame: an origin, an orthonormal basis with no zero component (FromNormal's u
+    // has one, which would hide the order of a dot product's terms), 1 / h.
+    double frame[13 * kLanes] = {};
+    for (int l = 0; l < kLanes; ++l) {
+        LocalFrame f;
+        f.origin = Vec3d(uniform(-1, 1), uniform(-1, 1), uniform(-1, 1));
+        f.n = Vec3d(uniform(-1, 1), uniform(-1, 1), 0.5).normalized();
+        const Vec3d r(uniform(-1, 1), 0.7, uniform(-1, 1));
+        f.u = (r - r.dot(f.n) * f.n).normalized();
+        f.v = f.n.cross(f.u);
+        const Vec3d* axes[4] = {&f.origin, &f.u, &f.v, &f.n};
+        for (int a = 0; a < 4; ++a)
+            for (int k = 0; k < 3; ++k) frame[(3 * a + k) * kLanes + l] = (*axes[a])[k];
+        frame[12 * kLanes + l] = 1.0 / uniform(0.5, 2.0);
+    }
+    double ref_m[9 * kLanes] = {}, ref_t[21 * kLanes] = {};
+    for (int l = 0; l < kLanes; ++l) {
+        const auto at = [&](int k) { return frame[k * kLanes + l]; };
+        const Vec3d o(at(0), at(1), at(2)), u(at(3), at(4), at(5)), v(at(6), at(7), at(8)), nrm(at(9), at(10), at(11));
+        double m[9] = {}, t[21] = {};
+        for (const std::uint32_t i : index[l]) {
+            const double x = xyz[3 * i], y = xyz[3 * i + 1], z = xyz[3 * i + 2];
+            const double mt[9] = {x, y, z, x * x, x * y, x * z, y * y, y * z, z * z};
+            for (int k = 0; k < 9; ++k) m[k] += mt[k];
+            const Vec3d d = Vec3d(x, y, z) - o;
+            const double xs = d.dot(u) * at(12), ys = d.dot(v) * at(12), zi = d.dot(nrm);
+            const double xx = xs * xs, xy = xs * ys, yy = ys * ys;
+            const double tt[21] = {1.0, xs, ys, xx, xy, yy, xx * xs, xx * ys, xy * ys, yy * ys, xx * xs * xs,
+                                   xx * xs * ys, xx * ys * ys, xy * ys * ys, yy * ys * ys, zi, xs * zi, ys * zi,
+                                   xx * zi, xy * zi, yy * zi};
+            for (int k = 0; k < 21; ++k) t[k] += tt[k];
+        }
+        for (int k = 0; k < 9; ++k) ref_m[k * kLanes + l] = m[k];
+        for (int k = 0; k < 21; ++k) ref_t[k * kLanes + l] = t[k];
+    }
+    for (const cluster_sums::Kernels* k : {&cluster_sums::Baseline(), &cluster_sums::Best()}) {
+        double m[9 * kLanes], t[21 * kLanes];
+        k->moments(xyz.data(), mine, size, m);
+        k->fit(xyz.data(), mine, size, frame, t);
+        EXPECT_EQ(std::memcmp(m, ref_m, sizeof m), 0) << k->isa;
+        EXPECT_EQ(std::memcmp(t, ref_t, sizeof t), 0) << k->isa;
+        for (int j = 0; j < 9 * kLanes; ++j) EXPECT_EQ(m[j], ref_m[j]) << k->isa << " moment " << j;
+        for (int j = 0; j < 21 * kLanes; ++j) EXPECT_EQ(t[j], ref_t[j]) << k->isa << " fit sum " << j;
     }
 }
 
