@@ -228,13 +228,14 @@ Score Compare(const std::vector<float>& truth, const std::vector<float>& z, doub
 // ---- Surfel variants ---------------------------------------------------------------------------
 
 // The surface options of a named variant (see the table's legend).
-// fixed: the paper's surface (one h = 2 x median spacing, plain weights, no boundary);
+// fixed: the paper's surface (one h, plain weights, no boundary; fixed+h2 is the h of sessions 5-11);
 // adaptive: AaBandwidth::kAdaptive;
 // +ball: regions of trust at least ball_h = 1 h_i wide; +nw: normal-aware weights (sigma 0.5);
-// +bdX: AaOptions::boundary = X; +hX: h = X x the default scale (2 x median spacing), so h1 is
-// the default. Core's default is fixed+nw+bd0.5.
+// +bdX: AaOptions::boundary = X; +hX: h = X x the median sample spacing (without it, core's
+// default h: kSurfaceScaleSpacings = 1.4 spacings; the default before session 12 was 2).
+// Core's default is adaptive+nw+bd0.5 (= adaptive+nw+bd0.5+h1.4; before session 12 fixed+nw+bd0.5+h2).
 // Suffixes combine in this order, e.g. adaptive+ball+nw.
-// `h_factor` (may be null) receives X of +hX, else 1.
+// `h_factor` (may be null) receives X of +hX, else 0 (core's default h).
 bool ApplyVariant(const std::string& name, AaOptions* o, float* h_factor = nullptr) {
     std::vector<std::string> parts;
     std::stringstream ss(name);
@@ -244,7 +245,7 @@ bool ApplyVariant(const std::string& name, AaOptions* o, float* h_factor = nullp
     o->normal_sigma = 0.0f;
     o->boundary = 0.0f;
     o->ball_h = 0.0f;
-    if (h_factor) *h_factor = 1.0f;
+    if (h_factor) *h_factor = 0.0f;
     if (parts[0] == "fixed") o->bandwidth = AaBandwidth::kFixed;
     else if (parts[0] == "adaptive") o->bandwidth = AaBandwidth::kAdaptive;
     else return false;
@@ -454,7 +455,7 @@ int Main(int argc, char** argv) {
         views.emplace_back("thin close-up", ThinCloseUp(mesh, truth, size, size, &where));
         notes << "- " << m << ": thin close-up at " << where << "; Poisson " << peer.triangles << " triangles, "
               << int(peer.ms) << " ms (normals + reconstruction)\n";
-        float default_h = 0.0f;  // DefaultScale of the cloud, for +hX variants (computed on first use)
+        float spacing = 0.0f;  // median sample spacing (DefaultScale / 2), for +hX variants (on first use)
         std::unique_ptr<KdTree> tree;
         if (!diag_dir.empty()) tree = std::make_unique<KdTree>(cloud.positions);
         for (const auto& [view, cam] : views) {
@@ -478,11 +479,11 @@ int Main(int argc, char** argv) {
                 RenderOptions ro;
                 ro.camera = cam;
                 ro.shadows = false;
-                float h_factor = 1.0f;
+                float h_factor = 0.0f;
                 ApplyVariant(v, &ro.surface, &h_factor);
-                if (h_factor != 1.0f) {
-                    if (default_h == 0.0f) default_h = DefaultScale(KdTree(cloud.positions));
-                    ro.surface.h = h_factor * default_h;
+                if (h_factor > 0.0f) {
+                    if (spacing == 0.0f) spacing = 0.5f * DefaultScale(KdTree(cloud.positions));
+                    ro.surface.h = h_factor * spacing;
                 }
                 const RenderResult r = Render(cloud, ro);
                 std::vector<float> z(zt.size());

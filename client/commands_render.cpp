@@ -132,7 +132,7 @@ void RegisterRenderCommands(CLI::App& app) {
     sub->add_flag("--no-shadows", a->no_shadows, "Skip shadow rays");
     sub->add_option("--spp", a->spp, "Stratified samples per pixel")->capture_default_str()->check(CLI::Range(1, kMaxSamplesPerPixel));
     sub->add_option("--background", a->background, "Background colour r,g,b (linear)")->default_val("0,0,0");
-    sub->add_option("--h", a->h, "Gaussian scale h (0 = 2 x median sample spacing)")->capture_default_str()->check(CLI::NonNegativeNumber);
+    sub->add_option("--h", a->h, "Gaussian scale h (0 = 1.4 x median sample spacing; with --bandwidth adaptive, the scale where the spacing is the median)")->capture_default_str()->check(CLI::NonNegativeNumber);
     sub->add_option("--precision", a->precision, "Convergence |c| < precision (0 = 1e-3 h)")->capture_default_str()->check(CLI::NonNegativeNumber);
     sub->add_option("--degree", a->degree, "Local polynomial degree (0, 1, 2)")->capture_default_str()->check(CLI::Range(0, 2));
     sub->add_option("--max-iterations", a->max_iterations, "Iterations per ball")->capture_default_str()->check(CLI::Range(1, kMaxSurfaceIterations));

@@ -54,6 +54,8 @@ struct AaSurface::Impl {
     std::vector<float> relative_spacing;
     // The local scale of ball i's boundary test (0 = not computed yet), filled on first need.
     std::unique_ptr<std::atomic<float>[]> boundary_scale;
+    // The boundary test's scales in units of max(h, kBoundarySpacings x the median spacing) / h.
+    float boundary_unit = 1.0f;
     float max_scale = 0.0f;
     std::vector<Vec3f> weight_normals;  // normal-aware weights (normal_sigma > 0)
     std::unique_ptr<UniformGrid> grid;
@@ -229,7 +231,7 @@ void AaSurface::SetUpScales() {
     AaOptions& o = impl_->opt;
     const SamplingDensity density = ComputeSamplingDensity(cloud.positions, o.ball_k);
     impl_->ball_radius = density.radius;
-    if (o.h == 0) o.h = DefaultScale(density);
+    if (o.h == 0) o.h = 0.7f * DefaultScale(density);
     if (!(o.h > 0)) throw Error(ErrorCode::kInvalidArgument, "cannot derive h from the cloud (all points coincide); pass h");
     if (o.precision == 0) o.precision = 1e-3f * o.h;
     if (o.bandwidth == AaBandwidth::kFixed) {
@@ -269,6 +271,7 @@ void AaSurface::SetUpScales() {
     }
     if (o.boundary > 0) {
         const float med = density.median_spacing > 0 ? density.median_spacing : 1.0f;
+        impl_->boundary_unit = std::max(1.0f, kBoundarySpacings * density.median_spacing / o.h);
         impl_->relative_spacing.resize(cloud.size());
         for (std::size_t i = 0; i < cloud.size(); ++i) impl_->relative_spacing[i] = density.spacing[i] / med;
         impl_->boundary_scale.reset(new std::atomic<float>[cloud.size()]);
@@ -626,10 +629,11 @@ std::optional<AaHit> AaSurface::IntersectInBall(std::uint32_t ball, const Vec3d&
             if (opt.boundary > 0) {
                 const Vec3d e = hit.position - fit.mean;
                 const Vec3d et = e - e.dot(fit.frame.n) * fit.frame.n;
-                const double b2 = double(opt.boundary) * opt.boundary, h0 = PointScale(ball);
+                const double b2 = double(opt.boundary) * opt.boundary;
+                const double u = impl_->boundary_unit, h0 = u * PointScale(ball);
                 const double e2 = et.squaredNorm();
                 if (e2 > b2 * h0 * h0) {
-                    const double hl = std::max(h0, double(BoundaryScale(ball)));
+                    const double hl = std::max(h0, u * double(BoundaryScale(ball)));
                     if (e2 > b2 * hl * hl) return std::nullopt;
                 }
             }

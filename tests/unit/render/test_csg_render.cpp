@@ -352,7 +352,7 @@ TEST(CsgRender, CreaseAwareRenderOfTheBooleanOutputAgrees) {
         smooth.creases = false;
         const Image smooth_img = Render(b.cloud, smooth).image;
         const Agreement f = Compare(smooth_img, z);
-        EXPECT_GE(f.transition_width, 4);  // the fillet the crease handling removes
+        EXPECT_GE(f.transition_width, 2);  // the fillet the crease handling removes (4-5 px at h = 2 spacings, 2-3 at 1.4)
         std::printf("[ %s ] CSG vs boolean output: agree %.4f, p95 %.2e diag; crease-aware vs exact: agree %.4f, "
                     "p95 %.2e, transition %d px, at the crease %d px; smooth: at the crease %d px\n",
                     BooleanOpName(s.op), share, p95, g.agree_share, g.p95_depth, g.transition_width,

@@ -30,7 +30,11 @@ protected:
 PointCloud* AaSphere::cloud_ = nullptr;
 
 TEST_F(AaSphere, ImplicitFunctionSignAndZeroSet) {
-    AaSurface s(*cloud_);
+    // The paper's section 3 with its one h (the default adaptive scales vary by point; at 0.5 h
+    // off the surface the covariance through x is near Definition 1's limit lambda0 = lambda1 / 2).
+    AaOptions paper;
+    paper.bandwidth = AaBandwidth::kFixed;
+    AaSurface s(*cloud_, paper);
     // Sign: f > 0 inside, < 0 outside (normals outward), within the tubular neighbourhood.
     const Vec3d dir = Vec3d(0.3, -0.5, 0.8).normalized();
     const double h = s.h();
