@@ -507,6 +507,13 @@ RenderResult RenderLayers(std::span<const SurfaceLayer> layers, const RenderOpti
     img.channels = {"R", "G", "B", "A", "Z", "N.X", "N.Y", "N.Z"};
     img.pixels.assign(std::size_t(img.width) * img.height * img.channels.size(), 0.0f);
 
+    // The surfaces' weight normals (estimated on their own thread since the AaSurface constructor,
+    // beside the BVH build above) are awaited here, outside the tiles: a tile's first fit would
+    // wait for them inside a TBB task, which keeps that TBB thread from joining the estimation's
+    // parallel loops (on 2 cores the per-point normals then ran on one thread while the other
+    // waited); waiting here leaves every TBB worker free to help.
+    for (const SurfaceLayer& layer : layers) layer.surface->WeightNormals();
+
     // The tiles, in parallel; each thread sums its stats and merges them once.
     const int tiles_x = (cam.width + opt.tile - 1) / opt.tile, tiles_y = (cam.height + opt.tile - 1) / opt.tile;
     ProgressTracker tracker(progress, double(tiles_x) * tiles_y, "render");
