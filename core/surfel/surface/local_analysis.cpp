@@ -308,33 +308,37 @@ std::size_t OrientOverGraph(std::span<const Vec3f> pts, std::vector<Vec3f>& norm
                 adj[fill[j]++] = static_cast<std::uint32_t>(i);
             }
 
-    // Connected components (union-find), then each component's root and centroid.
-    std::vector<std::uint32_t> parent(n);
-    std::iota(parent.begin(), parent.end(), 0u);
-    auto find = [&](std::uint32_t x) {
-        while (parent[x] != x) x = parent[x] = parent[parent[x]];
-        return x;
-    };
-    for (std::size_t i = 0; i < n; ++i)
-        for (std::uint32_t e = start[i]; e < start[i + 1]; ++e) {
-            const std::uint32_t a = find(static_cast<std::uint32_t>(i)), b = find(adj[e]);
-            if (a != b) parent[std::max(a, b)] = std::min(a, b);
-        }
+    // Connected components, numbered in the order of their least point (a search from each point
+    // not yet reached, in index order: each adjacency entry read once; the union-find it replaces
+    // numbered them the same way, its roots being each set's least point, at 19 M instructions on
+    // the bunny against ~5), then each component's root (top) and size.
     struct Comp {
         std::uint32_t top = UINT32_MAX;  // the tree's root: the point of largest z
         std::uint32_t first = 0, count = 0;  // its points: members[first, first + count)
     };
-    std::vector<std::uint32_t> comp_of(n);
-    std::vector<std::int64_t> comp_index(n, -1);
+    std::vector<std::uint32_t> comp_of(n, UINT32_MAX);
     std::vector<Comp> comps;
-    for (std::size_t i = 0; i < n; ++i) {
-        const std::uint32_t r = find(static_cast<std::uint32_t>(i));
-        if (comp_index[r] < 0) {
-            comp_index[r] = static_cast<std::int64_t>(comps.size());
+    {
+        std::vector<std::uint32_t> stack;
+        for (std::size_t i = 0; i < n; ++i) {
+            if (comp_of[i] != UINT32_MAX) continue;
+            const auto id = static_cast<std::uint32_t>(comps.size());
             comps.emplace_back();
+            comp_of[i] = id;
+            stack.assign(1, static_cast<std::uint32_t>(i));
+            while (!stack.empty()) {
+                const std::uint32_t u = stack.back();
+                stack.pop_back();
+                for (std::uint32_t e = start[u]; e < start[u + 1]; ++e)
+                    if (comp_of[adj[e]] == UINT32_MAX) {
+                        comp_of[adj[e]] = id;
+                        stack.push_back(adj[e]);
+                    }
+            }
         }
-        Comp& c = comps[comp_index[r]];
-        comp_of[i] = static_cast<std::uint32_t>(comp_index[r]);
+    }
+    for (std::size_t i = 0; i < n; ++i) {
+        Comp& c = comps[comp_of[i]];
         ++c.count;
         if (c.top == UINT32_MAX || pts[i].z() > pts[c.top].z()) c.top = static_cast<std::uint32_t>(i);
     }
