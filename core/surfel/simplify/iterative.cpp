@@ -20,6 +20,8 @@
 #include <atomic>
 #include <cmath>
 #include <limits>
+#include <memory>
+#include <utility>
 
 #include "surfel/base/error.h"
 #include "surfel/simplify/simplify_internal.h"
@@ -28,13 +30,37 @@
 namespace surfel::detail {
 namespace {
 
+/// std::allocator whose value-less construct leaves trivially constructible elements as they are:
+/// the large arrays below are first written in parallel loops, which then also take their page
+/// faults (session 12: zero-filling them, and the pool's copy into its reserve, ran on one core).
+template <class T>
+struct NoInit : std::allocator<T> {
+    using value_type = T;
+    template <class U>
+    struct rebind {
+        using other = NoInit<U>;
+    };
+    NoInit() = default;
+    template <class U>
+    NoInit(const NoInit<U>&) noexcept {}
+    template <class U>
+    void construct(U* p) noexcept {
+        ::new (static_cast<void*>(p)) U;
+    }
+    template <class U, class... Args>
+    void construct(U* p, Args&&... args) {
+        ::new (static_cast<void*>(p)) U(std::forward<Args>(args)...);
+    }
+};
+
 /// Sum of squared distances to a set of planes n.x = d: x^T A x - 2 b^T x + c, with A symmetric
-/// (a00 a01 a02 a11 a12 a22).
+/// (a00 a01 a02 a11 a12 a22). Quadric{} is the zero quadric (no member initialisers: a node's
+/// array is left uninitialised until the parallel loop that fills it).
 struct Quadric {
-    double a[6] = {0, 0, 0, 0, 0, 0};
-    double b[3] = {0, 0, 0};
-    double c = 0.0;
-    double planes = 0.0;
+    double a[6];
+    double b[3];
+    double c;
+    double planes;
 
     void AddPlane(const Eigen::Vector3d& n, const Eigen::Vector3d& p) {
         const double d = n.dot(p);
@@ -115,7 +141,7 @@ struct Entry {
 /// A node's list in the pool ([start, start + degree), room for capacity) and its mark (the last
 /// contraction that visited it): one cache line holds all a contraction needs to find the list.
 struct NodeRow {
-    std::uint32_t start = 0, degree = 0, capacity = 0, mark = 0;
+    std::uint32_t start, degree, capacity, mark;
 };
 
 /// All a contraction reads and writes of a node but its key: its list's place, its position and
@@ -307,8 +333,8 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
     // parallel: counts and slots by atomic increments (the order within a row depends on the
     // threads, its sorted contents do not).
     std::vector<std::uint32_t> first(n + 1, 0);
-    std::vector<Node> node(n);
-    std::vector<std::uint32_t> graph_storage;
+    std::vector<Node, NoInit<Node>> node(n);  // filled below, in parallel
+    std::vector<std::uint32_t, NoInit<std::uint32_t>> graph_storage;
     {
         std::vector<std::atomic<std::uint32_t>> count(n);
         tbb::parallel_for(tbb::blocked_range<std::uint32_t>(0, static_cast<std::uint32_t>(n), 4096),
@@ -327,7 +353,7 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
                           });
         for (std::size_t i = 0; i < n; ++i) first[i + 1] = first[i] + count[i].load(std::memory_order_relaxed);
         for (std::size_t i = 0; i < n; ++i) count[i].store(first[i], std::memory_order_relaxed);
-        std::vector<std::uint32_t>(first[n]).swap(graph_storage);
+        decltype(graph_storage)(first[n]).swap(graph_storage);  // every slot is written below
         tbb::parallel_for(tbb::blocked_range<std::uint32_t>(0, static_cast<std::uint32_t>(n), 4096),
                           [&](const tbb::blocked_range<std::uint32_t>& r) {
                               for (std::uint32_t i = r.begin(); i != r.end(); ++i) {
@@ -341,30 +367,33 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
                               }
                           });
     }
-    std::vector<std::uint32_t>& graph = graph_storage;  // input indices
+    auto& graph = graph_storage;  // input indices
+    // Each node's row (its list's place and room come with the pool) and position.
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 4096), [&](const tbb::blocked_range<std::size_t>& r) {
         for (std::size_t i = r.begin(); i != r.end(); ++i) {
             auto b = graph.begin() + first[i], e = graph.begin() + first[i + 1];
             std::sort(b, e);
-            node[i].row.degree = static_cast<std::uint32_t>(std::unique(b, e) - b);
+            node[i].row = {first[i], static_cast<std::uint32_t>(std::unique(b, e) - b), 0, 0};
+            node[i].p = points[input_of[i]].cast<double>();
         }
     });
 
     // Quadrics: one tangent plane per edge, spanned by e_i = p - p_i and b_i = e_i x n (the sign
     // of n does not matter: a quadric holds n n^T, d n and d^2).
-    for (std::uint32_t i = 0; i < n; ++i) node[i].p = points[input_of[i]].cast<double>();
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 4096), [&](const tbb::blocked_range<std::size_t>& r) {
         for (std::size_t i = r.begin(); i != r.end(); ++i) {
             const Eigen::Vector3d ni = normals[input_of[i]].cast<double>();
+            Quadric q{};
             for (std::uint32_t e = first[i]; e < first[i] + node[i].row.degree; ++e) {
                 const Eigen::Vector3d d = node[i].p - node[at[graph[e]]].p;
                 Eigen::Vector3d plane = d.cross(d.cross(ni));
                 const double len = plane.norm();
                 plane = len > 1e-300 ? Eigen::Vector3d(plane / len) : ni;
                 if (plane.dot(ni) < 0) plane = -plane;
-                node[i].q.AddPlane(plane, node[i].p);
+                q.AddPlane(plane, node[i].p);
             }
-            if (node[i].row.degree == 0) node[i].q.AddPlane(ni, node[i].p);
+            if (node[i].row.degree == 0) q.AddPlane(ni, node[i].p);
+            node[i].q = q;
         }
     });
     progress.Advance(0.1);
@@ -387,9 +416,10 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
 
     // The pool: a node's entries at [start, start + degree), room for `capacity`; a node whose list
     // outgrows its room moves to the end of the pool.
-    std::vector<Entry> pool(static_cast<std::size_t>(first[n]));
+    // Every entry is written by the loop below (the room a list leaves behind is never read).
+    std::vector<Entry, NoInit<Entry>> pool;
     pool.reserve(static_cast<std::size_t>(first[n]) * 2);
-    for (std::size_t i = 0; i < n; ++i) node[i].row.start = first[i];
+    pool.resize(static_cast<std::size_t>(first[n]));
     // Every pair's cost, evaluated once from its lower end (by input index).
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 1024), [&](const tbb::blocked_range<std::size_t>& r) {
         for (std::size_t i = r.begin(); i != r.end(); ++i) {
@@ -402,7 +432,7 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
             }
         }
     });
-    std::vector<std::uint32_t>().swap(graph);
+    decltype(graph_storage)().swap(graph);
     // ... and copied to the higher end (rows are still sorted by input index here).
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 1024), [&](const tbb::blocked_range<std::size_t>& r) {
         for (std::size_t i = r.begin(); i != r.end(); ++i) {
