@@ -20,6 +20,8 @@
 #include <atomic>
 #include <cmath>
 #include <limits>
+#include <memory>
+#include <utility>
 
 #include "surfel/base/error.h"
 #include "surfel/simplify/simplify_internal.h"
@@ -28,13 +30,37 @@
 namespace surfel::detail {
 namespace {
 
+/// std::allocator whose value-less construct leaves trivially constructible elements as they are:
+/// the large arrays below are first written in parallel loops, which then also take their page
+/// faults (session 12: zero-filling them, and the pool's copy into its reserve, ran on one core).
+template <class T>
+struct NoInit : std::allocator<T> {
+    using value_type = T;
+    template <class U>
+    struct rebind {
+        using other = NoInit<U>;
+    };
+    NoInit() = default;
+    template <class U>
+    NoInit(const NoInit<U>&) noexcept {}
+    template <class U>
+    void construct(U* p) noexcept {
+        ::new (static_cast<void*>(p)) U;
+    }
+    template <class U, class... Args>
+    void construct(U* p, Args&&... args) {
+        ::new (static_cast<void*>(p)) U(std::forward<Args>(args)...);
+    }
+};
+
 /// Sum of squared distances to a set of planes n.x = d: x^T A x - 2 b^T x + c, with A symmetric
-/// (a00 a01 a02 a11 a12 a22).
+/// (a00 a01 a02 a11 a12 a22). Quadric{} is the zero quadric (no member initialisers: a node's
+/// array is left uninitialised until the parallel loop that fills it).
 struct Quadric {
-    double a[6] = {0, 0, 0, 0, 0, 0};
-    double b[3] = {0, 0, 0};
-    double c = 0.0;
-    double planes = 0.0;
+    double a[6];
+    double b[3];
+    double c;
+    double planes;
 
     void AddPlane(const Eigen::Vector3d& n, const Eigen::Vector3d& p) {
         const double d = n.dot(p);
@@ -115,8 +141,18 @@ struct Entry {
 /// A node's list in the pool ([start, start + degree), room for capacity) and its mark (the last
 /// contraction that visited it): one cache line holds all a contraction needs to find the list.
 struct NodeRow {
-    std::uint32_t start = 0, degree = 0, capacity = 0, mark = 0;
+    std::uint32_t start, degree, capacity, mark;
 };
+
+/// All a contraction reads and writes of a node but its key: its list's place, its position and
+/// its quadric, on two cache lines of their own (session 12: separate arrays of quadrics (88 bytes),
+/// positions (24) and rows put a node on three to five lines).
+struct alignas(64) Node {
+    NodeRow row;
+    Eigen::Vector3d p;
+    Quadric q;
+};
+static_assert(sizeof(Node) == 128);
 
 /// The order of pairs: (cost, lower input index, higher input index), as a queue of all pairs
 /// would pop them. The indices are the input's, whatever order the points are kept in.
@@ -297,8 +333,8 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
     // parallel: counts and slots by atomic increments (the order within a row depends on the
     // threads, its sorted contents do not).
     std::vector<std::uint32_t> first(n + 1, 0);
-    std::vector<NodeRow> rows(n);
-    std::vector<std::uint32_t> graph_storage;
+    std::vector<Node, NoInit<Node>> node(n);  // filled below, in parallel
+    std::vector<std::uint32_t, NoInit<std::uint32_t>> graph_storage;
     {
         std::vector<std::atomic<std::uint32_t>> count(n);
         tbb::parallel_for(tbb::blocked_range<std::uint32_t>(0, static_cast<std::uint32_t>(n), 4096),
@@ -317,7 +353,7 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
                           });
         for (std::size_t i = 0; i < n; ++i) first[i + 1] = first[i] + count[i].load(std::memory_order_relaxed);
         for (std::size_t i = 0; i < n; ++i) count[i].store(first[i], std::memory_order_relaxed);
-        std::vector<std::uint32_t>(first[n]).swap(graph_storage);
+        decltype(graph_storage)(first[n]).swap(graph_storage);  // every slot is written below
         tbb::parallel_for(tbb::blocked_range<std::uint32_t>(0, static_cast<std::uint32_t>(n), 4096),
                           [&](const tbb::blocked_range<std::uint32_t>& r) {
                               for (std::uint32_t i = r.begin(); i != r.end(); ++i) {
@@ -331,32 +367,33 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
                               }
                           });
     }
-    std::vector<std::uint32_t>& graph = graph_storage;  // input indices
+    auto& graph = graph_storage;  // input indices
+    // Each node's row (its list's place and room come with the pool) and position.
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 4096), [&](const tbb::blocked_range<std::size_t>& r) {
         for (std::size_t i = r.begin(); i != r.end(); ++i) {
             auto b = graph.begin() + first[i], e = graph.begin() + first[i + 1];
             std::sort(b, e);
-            rows[i].degree = static_cast<std::uint32_t>(std::unique(b, e) - b);
+            node[i].row = {first[i], static_cast<std::uint32_t>(std::unique(b, e) - b), 0, 0};
+            node[i].p = points[input_of[i]].cast<double>();
         }
     });
 
     // Quadrics: one tangent plane per edge, spanned by e_i = p - p_i and b_i = e_i x n (the sign
     // of n does not matter: a quadric holds n n^T, d n and d^2).
-    std::vector<Quadric> quadric(n);
-    std::vector<Eigen::Vector3d> pos(n);
-    for (std::uint32_t i = 0; i < n; ++i) pos[i] = points[input_of[i]].cast<double>();
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 4096), [&](const tbb::blocked_range<std::size_t>& r) {
         for (std::size_t i = r.begin(); i != r.end(); ++i) {
             const Eigen::Vector3d ni = normals[input_of[i]].cast<double>();
-            for (std::uint32_t e = first[i]; e < first[i] + rows[i].degree; ++e) {
-                const Eigen::Vector3d d = pos[i] - pos[at[graph[e]]];
+            Quadric q{};
+            for (std::uint32_t e = first[i]; e < first[i] + node[i].row.degree; ++e) {
+                const Eigen::Vector3d d = node[i].p - node[at[graph[e]]].p;
                 Eigen::Vector3d plane = d.cross(d.cross(ni));
                 const double len = plane.norm();
                 plane = len > 1e-300 ? Eigen::Vector3d(plane / len) : ni;
                 if (plane.dot(ni) < 0) plane = -plane;
-                quadric[i].AddPlane(plane, pos[i]);
+                q.AddPlane(plane, node[i].p);
             }
-            if (rows[i].degree == 0) quadric[i].AddPlane(ni, pos[i]);
+            if (node[i].row.degree == 0) q.AddPlane(ni, node[i].p);
+            node[i].q = q;
         }
     });
     progress.Advance(0.1);
@@ -365,43 +402,46 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
     // distance to their planes would exceed the error bound never contract (until one end changes).
     const double bound2 = options.error > 0 ? options.error * options.error : kNever;
     // Always from the lower input index to the higher (the fit is symmetric only up to rounding).
-    auto fit = [&](std::uint32_t u, std::uint32_t v) {
-        if (input_of[u] > input_of[v]) std::swap(u, v);
-        return FitPair(quadric[u], quadric[v], pos[u], pos[v]);
+    // Callers pass the input indices iu, iv of u and v: the lists hold them, and input_of[] is
+    // one more scattered read per pair in the contraction loop.
+    auto fit = [&](std::uint32_t u, std::uint32_t v, std::uint32_t iu, std::uint32_t iv) {
+        if (iu > iv) std::swap(u, v);
+        return FitPair(node[u].q, node[v].q, node[u].p, node[v].p);
     };
-    auto cost_of = [&](std::uint32_t u, std::uint32_t v) {
-        const PairFit f = fit(u, v);
+    auto cost_of = [&](std::uint32_t u, std::uint32_t v, std::uint32_t iu, std::uint32_t iv) {
+        const PairFit f = fit(u, v, iu, iv);
         if (f.err / std::max(1.0, f.planes) > bound2) return kNever;
-        return f.err + kLengthWeight * f.planes * (pos[u] - pos[v]).squaredNorm();
+        return f.err + kLengthWeight * f.planes * (node[u].p - node[v].p).squaredNorm();
     };
 
     // The pool: a node's entries at [start, start + degree), room for `capacity`; a node whose list
     // outgrows its room moves to the end of the pool.
-    std::vector<Entry> pool(static_cast<std::size_t>(first[n]));
+    // Every entry is written by the loop below (the room a list leaves behind is never read).
+    std::vector<Entry, NoInit<Entry>> pool;
     pool.reserve(static_cast<std::size_t>(first[n]) * 2);
-    for (std::size_t i = 0; i < n; ++i) rows[i].start = first[i];
+    pool.resize(static_cast<std::size_t>(first[n]));
     // Every pair's cost, evaluated once from its lower end (by input index).
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 1024), [&](const tbb::blocked_range<std::size_t>& r) {
         for (std::size_t i = r.begin(); i != r.end(); ++i) {
-            rows[i].capacity = first[i + 1] - first[i];
+            node[i].row.capacity = first[i + 1] - first[i];
             for (std::uint32_t e = first[i]; e < first[i + 1]; ++e) {
                 const std::uint32_t j = graph[e];
                 pool[e] = {kNever, at[j], j};
-                if (e < first[i] + rows[i].degree && j > input_of[i])
-                    pool[e].cost = cost_of(static_cast<std::uint32_t>(i), at[j]);
+                if (e < first[i] + node[i].row.degree && j > input_of[i])
+                    pool[e].cost = cost_of(static_cast<std::uint32_t>(i), at[j], input_of[i], j);
             }
         }
     });
-    std::vector<std::uint32_t>().swap(graph);
+    decltype(graph_storage)().swap(graph);
     // ... and copied to the higher end (rows are still sorted by input index here).
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 1024), [&](const tbb::blocked_range<std::size_t>& r) {
         for (std::size_t i = r.begin(); i != r.end(); ++i) {
             const std::uint32_t self = input_of[i];
-            for (std::uint32_t e = rows[i].start; e < rows[i].start + rows[i].degree; ++e) {
+            for (std::uint32_t e = node[i].row.start; e < node[i].row.start + node[i].row.degree; ++e) {
                 if (pool[e].input > self) continue;
                 const std::uint32_t j = pool[e].id;
-                const Entry* b = pool.data() + rows[j].start;
-                const Entry* hit = std::lower_bound(b, b + rows[j].degree, self,
+                const Entry* b = pool.data() + node[j].row.start;
+                const Entry* hit = std::lower_bound(b, b + node[j].row.degree, self,
                                                     [](const Entry& x, std::uint32_t id) { return x.input < id; });
                 pool[e].cost = hit->cost;
             }
@@ -411,10 +451,9 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
 
     // Each node's best pair and the heap over them.
     std::vector<PairKey> best(n);
-    auto rescan = [&](std::uint32_t u) {
+    auto rescan = [&](std::uint32_t u, std::uint32_t self) {  // self = input_of[u]
         PairKey b;
-        const std::uint32_t self = input_of[u];
-        for (std::uint32_t e = rows[u].start; e < rows[u].start + rows[u].degree; ++e) {
+        for (std::uint32_t e = node[u].row.start; e < node[u].row.start + node[u].row.degree; ++e) {
             const PairKey key = KeyOf(pool[e].cost, self, pool[e].input);
             if (key < b) b = key;
         }
@@ -422,25 +461,27 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
     };
     tbb::parallel_for(tbb::blocked_range<std::uint32_t>(0, static_cast<std::uint32_t>(n), 4096),
                       [&](const tbb::blocked_range<std::uint32_t>& r) {
-                          for (std::uint32_t i = r.begin(); i != r.end(); ++i) rescan(i);
+                          for (std::uint32_t i = r.begin(); i != r.end(); ++i) rescan(i, input_of[i]);
                       });
     NodeHeap heap(best);
     heap.Build();
     auto entry_of = [&](std::uint32_t w, std::uint32_t id) -> Entry* {
-        for (std::uint32_t e = rows[w].start; e < rows[w].start + rows[w].degree; ++e)
+        for (std::uint32_t e = node[w].row.start; e < node[w].row.start + node[w].row.degree; ++e)
             if (pool[e].id == id) return &pool[e];
         return nullptr;
     };
     // Sets the cost of pair (u, w) at w's end and repairs w's best pair; `gone` (an input index)
-    // is a node that may just have left w's list (w's best may have been the pair with it).
-    auto set_cost_at = [&](std::uint32_t w, std::uint32_t u, double cost, std::uint32_t gone) {
+    // is a node that may just have left w's list (w's best may have been the pair with it). iw,
+    // iu: the input indices of w and u.
+    auto set_cost_at = [&](std::uint32_t w, std::uint32_t iw, std::uint32_t u, std::uint32_t iu, double cost,
+                           std::uint32_t gone) {
         Entry* e = entry_of(w, u);
-        SURFEL_CHECK(e != nullptr, "pair " << input_of[u] << "-" << input_of[w] << " missing at " << input_of[w]);
+        SURFEL_CHECK(e != nullptr, "pair " << iu << "-" << iw << " missing at " << iw);
         e->cost = cost;
-        const PairKey key = KeyOf(cost, input_of[u], input_of[w]);
+        const PairKey key = KeyOf(cost, iu, iw);
         const bool was_best = best[w].lo == key.lo && best[w].hi == key.hi;
         const bool lost_best = gone != kNone && (best[w].lo == gone || best[w].hi == gone);
-        if (was_best || lost_best) rescan(w);
+        if (was_best || lost_best) rescan(w, iw);
         else if (key < best[w]) best[w] = key;
         else return;
         heap.Update(w);
@@ -465,21 +506,21 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
             std::vector<std::uint32_t> ids;
             for (std::uint32_t o = 0; o < n; ++o)
                 if (alive[at[o]]) {
-                    live.push_back(pos[at[o]].cast<float>());
+                    live.push_back(node[at[o]].p.cast<float>());
                     ids.push_back(at[o]);
                 }
             const KdTree live_tree(live);
             const KnnTable live_knn = live_tree.KnnAll(std::min<int>(k, static_cast<int>(live.size()) - 1));
             auto append = [&](std::uint32_t u, std::uint32_t v) {
-                if (rows[u].degree == rows[u].capacity) {
+                if (node[u].row.degree == node[u].row.capacity) {
                     const std::uint32_t moved = static_cast<std::uint32_t>(pool.size());
-                    const std::uint32_t cap = std::max<std::uint32_t>(4, 2 * rows[u].capacity);
+                    const std::uint32_t cap = std::max<std::uint32_t>(4, 2 * node[u].row.capacity);
                     pool.resize(moved + cap);
-                    std::copy_n(pool.begin() + rows[u].start, rows[u].degree, pool.begin() + moved);
-                    rows[u].start = moved;
-                    rows[u].capacity = cap;
+                    std::copy_n(pool.begin() + node[u].row.start, node[u].row.degree, pool.begin() + moved);
+                    node[u].row.start = moved;
+                    node[u].row.capacity = cap;
                 }
-                pool[rows[u].start + rows[u].degree++] = {kNever, v, input_of[v]};
+                pool[node[u].row.start + node[u].row.degree++] = {kNever, v, input_of[v]};
             };
             for (std::uint32_t a = 0; a < live.size(); ++a)
                 for (const std::uint32_t b : live_knn.Row(a)) {
@@ -492,16 +533,16 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
                 }
             for (std::uint32_t a = 0; a < live.size(); ++a) {
                 const std::uint32_t u = ids[a];
-                for (std::uint32_t e = rows[u].start; e < rows[u].start + rows[u].degree; ++e) {
+                for (std::uint32_t e = node[u].row.start; e < node[u].row.start + node[u].row.degree; ++e) {
                     const std::uint32_t w = pool[e].id;
                     if (pool[e].input > input_of[u]) {
-                        pool[e].cost = cost_of(u, w);
+                        pool[e].cost = cost_of(u, w, input_of[u], pool[e].input);
                         entry_of(w, u)->cost = pool[e].cost;
                     }
                 }
             }
             for (const std::uint32_t u : ids) {
-                rescan(u);
+                rescan(u, input_of[u]);
                 heap.Update(u);
             }
             if (best[heap.top()].cost == kNever) break;  // nothing left to join (coincident points)
@@ -509,34 +550,32 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
         }
         // Contract the best pair: v (the higher input index) into u.
         const std::uint32_t u = at[best[top].lo], v = at[best[top].hi];
-        const std::uint32_t v_input = best[top].hi;
+        const std::uint32_t u_input = best[top].lo, v_input = best[top].hi;
         // The loop waits on memory (each pair touches rows, quadrics and keys scattered over the
         // pool): ask for all of a contraction's lines at once, in two waves (a list's place, then
         // the list), while the pair's fit computes.
         auto prefetch_row = [&](std::uint32_t w) {
-            const Entry* row = pool.data() + rows[w].start;
-            for (std::uint32_t e = 0; e < rows[w].degree; e += 4) __builtin_prefetch(row + e);
+            const Entry* row = pool.data() + node[w].row.start;
+            for (std::uint32_t e = 0; e < node[w].row.degree; e += 4) __builtin_prefetch(row + e);
         };
         prefetch_row(u);
         prefetch_row(v);
-        const PairFit f = fit(u, v);
+        const PairFit f = fit(u, v, u_input, v_input);
         for (const std::uint32_t x : {u, v})
-            for (std::uint32_t e = rows[x].start; e < rows[x].start + rows[x].degree; ++e) {
+            for (std::uint32_t e = node[x].row.start; e < node[x].row.start + node[x].row.degree; ++e) {
                 const std::uint32_t w = pool[e].id;
-                __builtin_prefetch(&rows[w]);
-                __builtin_prefetch(&quadric[w]);
-                __builtin_prefetch(reinterpret_cast<const char*>(&quadric[w]) + 64);
-                __builtin_prefetch(&pos[w]);
+                __builtin_prefetch(&node[w]);
+                __builtin_prefetch(reinterpret_cast<const char*>(&node[w]) + 64);
                 __builtin_prefetch(&best[w]);
                 heap.PrefetchPosition(w);
             }
         for (const std::uint32_t x : {u, v})
-            for (std::uint32_t e = rows[x].start; e < rows[x].start + rows[x].degree; ++e) {
+            for (std::uint32_t e = node[x].row.start; e < node[x].row.start + node[x].row.degree; ++e) {
                 prefetch_row(pool[e].id);
                 heap.PrefetchSlot(pool[e].id);
             }
-        pos[u] = f.x;
-        quadric[u] += quadric[v];
+        node[u].p = f.x;
+        node[u].q += node[v].q;
         alive[v] = 0;
         parent[v] = u;
         heap.Remove(v);
@@ -544,40 +583,40 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
         // u's new neighbours: its own and v's, without u and v. v's neighbours now point to u.
         ++epoch;
         merged.clear();
-        rows[u].mark = rows[v].mark = epoch;
-        for (std::uint32_t e = rows[u].start; e < rows[u].start + rows[u].degree; ++e)
-            if (rows[pool[e].id].mark != epoch) {
-                rows[pool[e].id].mark = epoch;
+        node[u].row.mark = node[v].row.mark = epoch;
+        for (std::uint32_t e = node[u].row.start; e < node[u].row.start + node[u].row.degree; ++e)
+            if (node[pool[e].id].row.mark != epoch) {
+                node[pool[e].id].row.mark = epoch;
                 merged.push_back(pool[e]);
             }
-        for (std::uint32_t e = rows[v].start; e < rows[v].start + rows[v].degree; ++e) {
+        for (std::uint32_t e = node[v].row.start; e < node[v].row.start + node[v].row.degree; ++e) {
             const std::uint32_t w = pool[e].id;
             if (w == u) continue;
             Entry* at_w = entry_of(w, v);
-            if (rows[w].mark == epoch) {
-                *at_w = pool[rows[w].start + --rows[w].degree];  // w knew both: drop v
+            if (node[w].row.mark == epoch) {
+                *at_w = pool[node[w].row.start + --node[w].row.degree];  // w knew both: drop v
             } else {
                 at_w->id = u;
-                at_w->input = input_of[u];
-                rows[w].mark = epoch;
+                at_w->input = u_input;
+                node[w].row.mark = epoch;
                 merged.push_back(pool[e]);
             }
         }
-        rows[v].degree = 0;
-        if (merged.size() > rows[u].capacity) {
+        node[v].row.degree = 0;
+        if (merged.size() > node[u].row.capacity) {
             const std::uint32_t cap = static_cast<std::uint32_t>(merged.size() + merged.size() / 2);
-            rows[u].start = static_cast<std::uint32_t>(pool.size());
-            rows[u].capacity = cap;
+            node[u].row.start = static_cast<std::uint32_t>(pool.size());
+            node[u].row.capacity = cap;
             pool.resize(pool.size() + cap);
         }
-        rows[u].degree = static_cast<std::uint32_t>(merged.size());
+        node[u].row.degree = static_cast<std::uint32_t>(merged.size());
         for (std::size_t j = 0; j < merged.size(); ++j) {
             const std::uint32_t w = merged[j].id;
-            const double cost = cost_of(u, w);
-            pool[rows[u].start + j] = {cost, w, merged[j].input};
-            set_cost_at(w, u, cost, v_input);
+            const double cost = cost_of(u, w, u_input, merged[j].input);
+            pool[node[u].row.start + j] = {cost, w, merged[j].input};
+            set_cost_at(w, merged[j].input, u, u_input, cost, v_input);
         }
-        rescan(u);
+        rescan(u, u_input);
         heap.Update(u);
         --count;
         if (++since == 8192) {
@@ -605,7 +644,7 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
     std::vector<std::uint32_t> rep(out.count, kNone);  // input index of each cluster's survivor
     for (std::uint32_t o = 0; o < n; ++o)
         if (alive[at[o]]) {
-            positions[out.label[o]] = pos[at[o]].cast<float>();
+            positions[out.label[o]] = node[at[o]].p.cast<float>();
             rep[out.label[o]] = o;
         }
     if (cluster_normals) {

@@ -3,12 +3,14 @@
 #include <tbb/blocked_range.h>
 #include <tbb/global_control.h>
 #include <tbb/parallel_for.h>
+#include <tbb/task_group.h>
 
 #include <algorithm>
 #include <cmath>
 #include <flann/algorithms/kdtree_single_index.h>
 #include <flann/flann.hpp>
 #include <limits>
+#include <mutex>
 #include <sstream>
 
 #include "surfel/base/error.h"
@@ -93,7 +95,21 @@ private:
 struct KdTree::Impl {
     std::vector<Vec3f> points;
     std::unique_ptr<FlannTree> tree;
+    std::once_flag built;
     flann::SearchParams params{flann::FLANN_CHECKS_UNLIMITED, 0.0f, false};
+
+    /// The FLANN index, built on first use (null for no points): KnnAll builds it beside the grid's
+    /// search, which answers most rows without it (session 12: the build was ~50 ms on one core
+    /// before anything else could start, on the 362k merged scans).
+    FlannTree* Tree() {
+        std::call_once(built, [this] {
+            if (points.empty()) return;
+            flann::Matrix<float> data(points.data()->data(), points.size(), 3);
+            tree = std::make_unique<FlannTree>(data, flann::KDTreeSingleIndexParams(15, true));
+            tree->buildIndex();
+        });
+        return tree.get();
+    }
 };
 
 // ---- The range single-precision distances can hold ---------------------------------------------
@@ -130,11 +146,7 @@ KdTree::KdTree(std::span<const Vec3f> points) : impl_(std::make_unique<Impl>()) 
     impl_->points.assign(points.begin(), points.end());
     if (impl_->points.size() >= std::numeric_limits<std::uint32_t>::max())
         throw Error(ErrorCode::kResourceExhausted, "too many points for the kd-tree: " + std::to_string(points.size()));
-    if (!impl_->points.empty()) {
-        flann::Matrix<float> data(impl_->points.data()->data(), impl_->points.size(), 3);
-        impl_->tree = std::make_unique<FlannTree>(data, flann::KDTreeSingleIndexParams(15, true));
-        impl_->tree->buildIndex();
-    }
+    // The index itself is built on first use (Impl::Tree).
 }
 
 KdTree::~KdTree() = default;
@@ -145,12 +157,12 @@ std::span<const Vec3f> KdTree::points() const { return impl_->points; }
 void KdTree::Knn(const Vec3f& q, int k, std::vector<Neighbor>* out) const {
     SURFEL_CHECK(k > 0, "k = " << k);
     KnnCollector c(out, static_cast<std::size_t>(k));
-    if (impl_->tree) impl_->tree->findNeighbors(c, q.data(), impl_->params);
+    if (FlannTree* tree = impl_->Tree()) tree->findNeighbors(c, q.data(), impl_->params);
 }
 
 void KdTree::Radius(const Vec3f& q, float radius, std::vector<Neighbor>* out) const {
     RadiusCollector c(out, radius * radius);
-    if (impl_->tree) impl_->tree->findNeighbors(c, q.data(), impl_->params);
+    if (FlannTree* tree = impl_->Tree()) tree->findNeighbors(c, q.data(), impl_->params);
 }
 
 namespace {
@@ -172,7 +184,7 @@ private:
 
 Neighbor KdTree::Nearest(const Vec3f& q) const {
     NearestCollector c;
-    if (impl_->tree) impl_->tree->findNeighbors(c, q.data(), impl_->params);
+    if (FlannTree* tree = impl_->Tree()) tree->findNeighbors(c, q.data(), impl_->params);
     return c.best();
 }
 
@@ -222,8 +234,15 @@ KnnTable RunBatch(const KdTree& tree, std::size_t n, int k, bool exclude_self, c
 KnnTable KdTree::KnnAll(int k, const ProgressFn& progress) const {
     SURFEL_CHECK(k > 0, "k = " << k);
     const std::size_t n = size();
+    // The tree (for the rows the grid leaves) is built by one thread while the others search the
+    // grid's blocks.
+    tbb::task_group build;
+    build.run([this] { impl_->Tree(); });
     const auto grid = NeighborGrid(impl_->points, k);
-    if (!grid) return RunBatch(*this, n, k, true, impl_->points.data(), progress);
+    if (!grid) {
+        build.wait();
+        return RunBatch(*this, n, k, true, impl_->points.data(), progress);
+    }
     // Most rows from the grid's blocks (the same table: same ranking, same float distances), the
     // rest (near a sparse region's edge) from the tree, as RunBatch answers them.
     KnnTable table;
@@ -234,6 +253,7 @@ KnnTable KdTree::KnnAll(int k, const ProgressFn& progress) const {
     std::vector<std::uint8_t> answered(n, 0);
     grid->KnnInBlock(k, table.indices.data(), table.dist2.data(), answered.data(),
                      [&](std::size_t points) { tracker.Advance(0.8 * static_cast<double>(points)); });
+    build.wait();
     std::vector<std::uint32_t> rest;
     for (std::size_t i = 0; i < n; ++i)
         if (!answered[i]) rest.push_back(static_cast<std::uint32_t>(i));
