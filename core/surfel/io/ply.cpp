@@ -433,13 +433,18 @@ private:
             for (Sink& s : second_sinks)
                 if (s.f) s.f = to + (s.f - from);
             const auto read_second = [&] { ReadBlocks(e, second_sinks, mid, n, &second); };
-            std::thread thread;
+            struct Joiner {  // joined on every way out (a joinable std::thread must not be destroyed)
+                std::thread thread;
+                ~Joiner() {
+                    if (thread.joinable()) thread.join();
+                }
+            } second_half;
             try {
-                thread = std::thread(read_second);
+                second_half.thread = std::thread(read_second);
             } catch (const std::system_error&) {  // no thread to be had: both halves here
             }
             ReadBlocks(e, sinks, 0, mid, stream);
-            if (thread.joinable()) thread.join();
+            if (second_half.thread.joinable()) second_half.thread.join();
             else read_second();
             stream->Merge(second);
         } else {
