@@ -157,6 +157,13 @@ struct ResampleReport {
     /// split method: the largest spacing along a tangent ellipse's main axis after the last
     /// round (model units); <= kSplitSlack x the target spacing unless kMaxSplitRounds ran out.
     double max_spacing = 0.0;
+    /// split method: samples whose spacing still exceeds kSplitSlack x the target after the last
+    /// round (0: every region meets the target), and the regions they form.
+    std::size_t above_target = 0;
+    std::size_t above_target_regions = 0;
+    /// split method: samples at a rim of the surface after the last round, judged by their
+    /// interior side.
+    std::size_t rim_samples = 0;
 };
 
 struct ResampleResult {
