@@ -6,10 +6,8 @@
 #include <Eigen/Dense>
 #include <algorithm>
 #include <cmath>
-#include <numeric>
-#include <cstdio>
-#include <cstdlib>
 #include <numbers>
+#include <numeric>
 #include <sstream>
 #include <string>
 
