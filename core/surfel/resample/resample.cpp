@@ -447,26 +447,42 @@ void RunSplit(const PointCloud& input, const KdTree& input_tree, std::span<const
     std::iota(home.begin(), home.end(), 0u);
     std::vector<Vec3f> near_rims;
     const std::vector<Vec3f> rims = InputRims(input_tree, normals, &near_rims);
-    int round = 0;
-    for (; round < kMaxSplitRounds; ++round) {
-        tracker.Check();
-        // Stretch (3.2.2): the tangent ellipse of each sample's neighbourhood (MeasureStretch:
-        // the spacing along its main axis and that axis; at a rim, of the interior side only).
+    // Stretch (3.2.2) of every sample (MeasureStretch: the spacing along its tangent ellipse's
+    // main axis and that axis; at a rim, of the interior side only) into extent, axis and rim;
+    // returns the kSplitNeighbors-nearest table. The kSplitBoundaryNeighbors-row (whose first
+    // columns are the table's row) only for samples whose closest input sample is at a rim.
+    const auto measure = [&](const KdTree& tree) {
         const std::size_t m = pos.size();
-        const KdTree tree(pos);
-        const int kk = std::min<int>(kSplitBoundaryNeighbors, static_cast<int>(m) - 1);
-        const KnnTable nn = tree.KnnAll(kk);
+        const KnnTable nn = tree.KnnAll(std::min<int>(kSplitNeighbors, static_cast<int>(m) - 1));
+        const int kb = std::min<int>(kSplitBoundaryNeighbors, static_cast<int>(m) - 1);
         extent.assign(m, 0.0f);
         axis.assign(m, Vec3f::Zero());
         rim.assign(m, 0);
         tbb::parallel_for(tbb::blocked_range<std::size_t>(0, m, 1024), [&](const auto& range) {
+            std::array<std::uint32_t, kSplitBoundaryNeighbors> row{};
+            std::vector<Neighbor> scratch;
             for (std::size_t i = range.begin(); i != range.end(); ++i) {
-                const Stretch st = MeasureStretch(pos, i, nrm[i], near_rims[home[i]], nn.Row(i));
+                const Vec3f& outward = near_rims[home[i]];
+                std::span<const std::uint32_t> r = nn.Row(i);
+                if (outward != Vec3f::Zero() && kb == kSplitBoundaryNeighbors) {
+                    tree.KnnRow(i, kb, row.data(), nullptr, scratch);
+                    r = row;
+                }
+                const Stretch st = MeasureStretch(pos, i, nrm[i], outward, r);
                 extent[i] = st.extent;
                 axis[i] = st.axis;
                 rim[i] = st.rim;
             }
         });
+        return nn;
+    };
+    int round = 0;
+    for (; round < kMaxSplitRounds; ++round) {
+        tracker.Check();
+        // Stretch (3.2.2): the tangent ellipse of each sample's neighbourhood.
+        const std::size_t m = pos.size();
+        const KdTree tree(pos);
+        const KnnTable nn = measure(tree);
         std::vector<std::uint32_t> split;
         for (std::size_t i = 0; i < m; ++i)
             if (extent[i] > kSplitSlack * s) split.push_back(static_cast<std::uint32_t>(i));
@@ -518,16 +534,10 @@ void RunSplit(const PointCloud& input, const KdTree& input_tree, std::span<const
     if (round == kMaxSplitRounds) {
         // Ran out of rounds: what the last round's splits left, measured once more.
         const KdTree tree(pos);
-        const KnnTable nn = tree.KnnAll(std::min<int>(kSplitBoundaryNeighbors, static_cast<int>(pos.size()) - 1));
+        const KnnTable nn = measure(tree);
         std::vector<std::uint32_t> left;
-        extent.resize(pos.size());
-        rim.resize(pos.size());
-        for (std::size_t i = 0; i < pos.size(); ++i) {
-            const Stretch st = MeasureStretch(pos, i, nrm[i], near_rims[home[i]], nn.Row(i));
-            extent[i] = st.extent;
-            rim[i] = st.rim;
-            if (st.extent > kSplitSlack * s) left.push_back(static_cast<std::uint32_t>(i));
-        }
+        for (std::size_t i = 0; i < pos.size(); ++i)
+            if (extent[i] > kSplitSlack * s) left.push_back(static_cast<std::uint32_t>(i));
         report.above_target = left.size();
         report.above_target_regions = CountRegions(left, nn, pos.size());
     }
