@@ -36,11 +36,17 @@ enum class ResampleMethod {
     /// plane, s^2 / 2 I on a hexagonal lattice of spacing s), splitting every sample whose spacing
     /// along the main axis, sqrt(2 lambda_max), exceeds kSplitSlack x the target spacing into two
     /// samples a quarter of that spacing either side on the axis, and relaxing (linear repulsion
-    /// within the target spacing, on the tangent planes), until no sample exceeds it or
+    /// within the target spacing, on the tangent planes), until no sample exceeds it (every
+    /// region meets the target), or splitting stalls (the samples above it are at most 0.1 % of
+    /// all and 4 rounds did not halve them: creases where it does not converge), or
     /// kMaxSplitRounds; a final MLS projection; colours and attributes interpolated from the
-    /// input samples, which never move (the zombies). Only adds: regions already denser than the
-    /// target keep their samples. Target: `spacing`, or `target` read as the spacing of a
-    /// hexagonal lattice of that many points on the input's area (the count is not exact).
+    /// input samples, which never move (the zombies). Samples at a rim of the surface (the
+    /// input's rim, where the 32 nearest input samples leave an angle gap above 150 degrees,
+    /// and the sample's own 16 nearest leave one on that side) are judged by their interior side
+    /// only, and the relaxation keeps samples within a quarter of a rim sample's reach past it.
+    /// Only adds: regions already denser than the target keep their samples. Target: `spacing`,
+    /// or `target` read as the spacing of a hexagonal lattice of that many points on the
+    /// input's area (the count is not exact).
     kSplit,
 };
 
@@ -155,7 +161,7 @@ struct ResampleReport {
     /// split method: samples split in all.
     std::size_t splits = 0;
     /// split method: the largest spacing along a tangent ellipse's main axis after the last
-    /// round (model units); <= kSplitSlack x the target spacing unless kMaxSplitRounds ran out.
+    /// round (model units); <= kSplitSlack x the target spacing when every region met it.
     double max_spacing = 0.0;
     /// split method: samples whose spacing still exceeds kSplitSlack x the target after the last
     /// round (0: every region meets the target), and the regions they form.
