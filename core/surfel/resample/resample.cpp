@@ -312,10 +312,10 @@ AngleGap LargestGap(const LocalFrame& frame, std::span<const Vec3f> points, std:
 // nearest reach farther along the rim (a lattice row's edge sample has 4 neighbours at s, the
 // 5th and 6th at sqrt(3) s: 1.53 s), so its ellipse stays above the target however often it is
 // split: that kept the bunny splitting at its holes for all kMaxSplitRounds rounds. A sample is
-// at a rim when its closest input sample is (`outward`, that sample's rim direction, non-zero;
-// the input, which never moves, says where the surface ends, so a gap the densification has not
-// filled yet is not taken for a rim) and its own kSplitBoundaryNeighbors nearest leave a gap of
-// more than kSplitRimGap on that side. It is judged by the interior side alone: the lattice's
+// at a rim when its closest input sample is at one or next to one (`outward`, that rim's
+// direction, non-zero; the input, which never moves, says where the surface ends, so a gap the
+// densification has not filled yet is not taken for a rim) and its own kSplitBoundaryNeighbors
+// nearest (`row`; a shorter row skips the test) leave a gap of more than kSplitRimGap on that side. It is judged by the interior side alone: the lattice's
 // neighbours in the covered angle theta, 6 theta / 2 pi + 1 of the nearest (4 at a straight
 // rim: 1.12 s on the lattice), their ellipse mirrored across the rim (the cross term between
 // along and across it dropped, as if the other side were there).

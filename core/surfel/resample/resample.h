@@ -82,7 +82,8 @@ struct ResampleOptions {
     /// (area / (sqrt(3)/2 spacing^2) points); with `adaptive` it is the spacing where the
     /// surface variation equals its median. 0 = use `target`. Exactly one of the two is given
     /// (neither for mls). The split method splits until every sample's spacing along its
-    /// tangent ellipse's main axis is at most kSplitSlack x this.
+    /// tangent ellipse's main axis (at a rim: of its interior side) is at most kSplitSlack x
+    /// this, or splitting stalls (ResampleMethod::kSplit).
     double spacing = 0.0;
     /// Curvature-adaptive (2.3.4): repulsion radius scaled by 1 / sigma_n relative to the
     /// median, clamped to [1/2, 2], so up to 16x the density where the surface bends most;
