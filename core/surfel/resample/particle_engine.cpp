@@ -221,7 +221,8 @@ Vec3f ParticleEngine::OntoSurface(Vec3f moved, std::span<const Vec3f> rim_outwar
     // Past a rim sample of the input by at most kRimMargin of that radius along its outward
     // direction (Relax with rim directions).
     if (!rim_outward.empty())
-        moved -= std::max(0.0f, (moved - points[q]).dot(rim_outward[q]) - kRimMargin * reach) * rim_outward[q];
+        moved -= std::max(0.0f, (moved - points[q]).dot(rim_outward[q]) - kRimMargin * reach) *
+                 rim_outward[q];
     const Vec3f off = moved - points[q];
     const float len_off = off.norm();
     if (len_off > reach) moved = points[q] + off * (reach / len_off);
@@ -273,7 +274,8 @@ Vec3f ParticleEngine::OntoPlane(Vec3f moved, std::uint32_t q) const {
 }
 
 void ParticleEngine::Relax(std::vector<Vec3f>& positions, double radius, int iterations,
-                           const std::vector<std::uint8_t>* movable, std::span<const Vec3f> rim_outward) const {
+                           const std::vector<std::uint8_t>* movable,
+                           std::span<const Vec3f> rim_outward) const {
     SURFEL_CHECK(rim_outward.empty() || rim_outward.size() == input_.size(), rim_outward.size());
     const std::size_t m = positions.size();
     const float r = static_cast<float>(radius);

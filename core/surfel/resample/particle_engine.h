@@ -148,7 +148,8 @@ public:
     /// beyond it: the samples stay on the sampled side of the rim instead of drifting up to the
     /// reach past it.
     void Relax(std::vector<Vec3f>& positions, double radius, int iterations,
-               const std::vector<std::uint8_t>* movable = nullptr, std::span<const Vec3f> rim_outward = {}) const;
+               const std::vector<std::uint8_t>* movable = nullptr,
+               std::span<const Vec3f> rim_outward = {}) const;
 
     /// The kd-tree over the input positions.
     const KdTree& tree() const { return *tree_; }

@@ -15,8 +15,8 @@
 #include "surfel/base/validate.h"
 #include "surfel/resample/particle_engine.h"
 #include "surfel/spatial/kd_tree.h"
-#include "surfel/spatial/uniform_grid.h"
 #include "surfel/spatial/neighbor_radii.h"
+#include "surfel/spatial/uniform_grid.h"
 #include "surfel/surface/local_analysis.h"
 #include "surfel/surface/poly_fit.h"
 
@@ -285,7 +285,8 @@ struct AngleGap {
     Eigen::Vector2d middle = Eigen::Vector2d::Zero();
 };
 
-AngleGap LargestGap(const LocalFrame& frame, std::span<const Vec3f> points, std::span<const std::uint32_t> row) {
+AngleGap LargestGap(const LocalFrame& frame, std::span<const Vec3f> points,
+                    std::span<const std::uint32_t> row) {
     std::array<double, kSplitInputRimNeighbors> angle{};
     const int count = std::min<int>(kSplitInputRimNeighbors, static_cast<int>(row.size()));
     for (int j = 0; j < count; ++j) {
@@ -298,7 +299,8 @@ AngleGap LargestGap(const LocalFrame& frame, std::span<const Vec3f> points, std:
     g.angle = angle[0] + 2.0 * std::numbers::pi - angle[count - 1];
     double middle = angle[count - 1] + 0.5 * g.angle;
     for (int j = 1; j < count; ++j)
-        if (angle[j] - angle[j - 1] > g.angle) g.angle = angle[j] - angle[j - 1], middle = angle[j - 1] + 0.5 * g.angle;
+        if (angle[j] - angle[j - 1] > g.angle)
+            g.angle = angle[j] - angle[j - 1], middle = angle[j - 1] + 0.5 * g.angle;
     g.middle = Eigen::Vector2d(std::cos(middle), std::sin(middle));
     return g;
 }
@@ -315,18 +317,19 @@ AngleGap LargestGap(const LocalFrame& frame, std::span<const Vec3f> points, std:
 // at a rim when its closest input sample is at one or next to one (`outward`, that rim's
 // direction, non-zero; the input, which never moves, says where the surface ends, so a gap the
 // densification has not filled yet is not taken for a rim) and its own kSplitBoundaryNeighbors
-// nearest (`row`; a shorter row skips the test) leave a gap of more than kSplitRimGap on that side. It is judged by the interior side alone: the lattice's
-// neighbours in the covered angle theta, 6 theta / 2 pi + 1 of the nearest (4 at a straight
-// rim: 1.12 s on the lattice), their ellipse mirrored across the rim (the cross term between
-// along and across it dropped, as if the other side were there).
+// nearest (`row`; a shorter row skips the test) leave a gap of more than kSplitRimGap on that side.
+// It is judged by the interior side alone: the lattice's neighbours in the covered angle theta, 6
+// theta / 2 pi + 1 of the nearest (4 at a straight rim: 1.12 s on the lattice), their ellipse
+// mirrored across the rim (the cross term between along and across it dropped, as if the other side
+// were there).
 struct Stretch {
     float extent = 0.0f;
     Vec3f axis = Vec3f::Zero();
     std::uint8_t rim = 0;
 };
 
-Stretch MeasureStretch(std::span<const Vec3f> pos, std::size_t i, const Vec3f& normal, const Vec3f& outward,
-                       std::span<const std::uint32_t> row) {
+Stretch MeasureStretch(std::span<const Vec3f> pos, std::size_t i, const Vec3f& normal,
+                       const Vec3f& outward, std::span<const std::uint32_t> row) {
     const LocalFrame frame = LocalFrame::FromNormal(pos[i].cast<double>(), normal.cast<double>());
     const int k = std::min<int>(kSplitNeighbors, static_cast<int>(row.size()));
     std::array<Eigen::Vector2d, kSplitNeighbors> d;
@@ -346,7 +349,8 @@ Stretch MeasureStretch(std::span<const Vec3f> pos, std::size_t i, const Vec3f& n
         for (int j = 0; j < k; ++j) C += d[j] * d[j].transpose() / static_cast<double>(k);
     } else {
         const double covered = 2.0 * std::numbers::pi - gap.angle;
-        const int kb = std::clamp(static_cast<int>(std::lround(6.0 * covered / (2.0 * std::numbers::pi))) + 1, 2, k);
+        const int kb = std::clamp(
+            static_cast<int>(std::lround(6.0 * covered / (2.0 * std::numbers::pi))) + 1, 2, k);
         const Eigen::Vector2d out = gap.middle, along(-out.y(), out.x());
         double aa = 0.0, oo = 0.0;
         for (int j = 0; j < kb; ++j) {
@@ -367,7 +371,8 @@ Stretch MeasureStretch(std::span<const Vec3f> pos, std::size_t i, const Vec3f& n
 // nearest leave a gap above kSplitRimGap (at 32 neighbours a random sampling's interior does so
 // at one sample in 10^7), the unit direction of the gap's middle; zero elsewhere. `near_rim`
 // (optional): the same, extended to the samples next to a rim sample.
-std::vector<Vec3f> InputRims(const KdTree& tree, std::span<const Vec3f> normals, std::vector<Vec3f>* near_rim) {
+std::vector<Vec3f> InputRims(const KdTree& tree, std::span<const Vec3f> normals,
+                             std::vector<Vec3f>* near_rim) {
     const std::span<const Vec3f> points = tree.points();
     const std::size_t n = points.size();
     std::vector<Vec3f> outward(n, Vec3f::Zero());
@@ -376,10 +381,13 @@ std::vector<Vec3f> InputRims(const KdTree& tree, std::span<const Vec3f> normals,
     const KnnTable knn = tree.KnnAll(kSplitInputRimNeighbors);
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 1024), [&](const auto& range) {
         for (std::size_t i = range.begin(); i != range.end(); ++i) {
-            const LocalFrame frame = LocalFrame::FromNormal(points[i].cast<double>(), normals[i].cast<double>());
+            const LocalFrame frame =
+                LocalFrame::FromNormal(points[i].cast<double>(), normals[i].cast<double>());
             const AngleGap gap = LargestGap(frame, points, knn.Row(i));
             if (gap.angle > kSplitRimGap)
-                outward[i] = (gap.middle.x() * frame.u + gap.middle.y() * frame.v).normalized().cast<float>();
+                outward[i] = (gap.middle.x() * frame.u + gap.middle.y() * frame.v)
+                                 .normalized()
+                                 .cast<float>();
         }
     });
     if (near_rim) {
@@ -399,7 +407,8 @@ std::vector<Vec3f> InputRims(const KdTree& tree, std::span<const Vec3f> normals,
 
 // Regions of `flagged` samples (sorted indices of m): groups linked where one is among the other's
 // kSplitNeighbors nearest (union-find over the rows of `nn`).
-std::size_t CountRegions(std::span<const std::uint32_t> flagged, const KnnTable& nn, std::size_t m) {
+std::size_t CountRegions(std::span<const std::uint32_t> flagged, const KnnTable& nn,
+                         std::size_t m) {
     std::vector<std::uint32_t> parent(m, UINT32_MAX);
     for (const std::uint32_t i : flagged) parent[i] = i;
     const auto find = [&](std::uint32_t i) {
@@ -408,7 +417,8 @@ std::size_t CountRegions(std::span<const std::uint32_t> flagged, const KnnTable&
     };
     std::size_t regions = flagged.size();
     for (const std::uint32_t i : flagged)
-        for (const std::uint32_t j : nn.Row(i).first(std::min<std::size_t>(kSplitNeighbors, nn.Row(i).size())))
+        for (const std::uint32_t j :
+             nn.Row(i).first(std::min<std::size_t>(kSplitNeighbors, nn.Row(i).size())))
             if (j != UINT32_MAX && parent[j] != UINT32_MAX) {
                 const std::uint32_t a = find(i), b = find(j);
                 if (a != b) parent[std::max(a, b)] = std::min(a, b), --regions;
@@ -493,8 +503,10 @@ void RunSplit(const PointCloud& input, const KdTree& input_tree, std::span<const
         report.above_target = split.size();
         const std::size_t r = above.size() - 1;
         if (split.empty() ||
-            (r >= kSplitStallRounds && static_cast<double>(split.size()) <= kSplitStallShare * static_cast<double>(m) &&
-             static_cast<double>(split.size()) > kSplitStallRatio * static_cast<double>(above[r - kSplitStallRounds]))) {
+            (r >= kSplitStallRounds &&
+             static_cast<double>(split.size()) <= kSplitStallShare * static_cast<double>(m) &&
+             static_cast<double>(split.size()) >
+                 kSplitStallRatio * static_cast<double>(above[r - kSplitStallRounds]))) {
             report.above_target_regions = CountRegions(split, nn, m);
             break;
         }
@@ -522,12 +534,13 @@ void RunSplit(const PointCloud& input, const KdTree& input_tree, std::span<const
                     grid.ForEachWithin(pos[i], reach, [&](std::uint32_t j, const Vec3f&, float) { movable[j] = 1; });
         }
         engine.Relax(pos, kSplitRelaxRadius * s, kSplitRelaxIterations, &movable, rims);
-        tbb::parallel_for(tbb::blocked_range<std::size_t>(0, pos.size(), 1024), [&](const auto& range) {
-            for (std::size_t i = range.begin(); i != range.end(); ++i) {
-                home[i] = engine.tree().Nearest(pos[i]).index;
-                nrm[i] = normals[home[i]];
-            }
-        });
+        tbb::parallel_for(tbb::blocked_range<std::size_t>(0, pos.size(), 1024),
+                          [&](const auto& range) {
+                              for (std::size_t i = range.begin(); i != range.end(); ++i) {
+                                  home[i] = engine.tree().Nearest(pos[i]).index;
+                                  nrm[i] = normals[home[i]];
+                              }
+                          });
         tracker.Advance(0.7 / kMaxSplitRounds);
     }
     report.iterations = round;
@@ -541,7 +554,8 @@ void RunSplit(const PointCloud& input, const KdTree& input_tree, std::span<const
         report.above_target = left.size();
         report.above_target_regions = CountRegions(left, nn, pos.size());
     }
-    report.rim_samples = static_cast<std::size_t>(std::count(rim.begin(), rim.end(), std::uint8_t{1}));
+    report.rim_samples =
+        static_cast<std::size_t>(std::count(rim.begin(), rim.end(), std::uint8_t{1}));
     report.max_spacing = extent.empty() ? 0.0 : *std::max_element(extent.begin(), extent.end());
     // Final MLS projection (as the particle engine's), normals like the closest input normal.
     const MlsSurface mls(input, engine.tree());

@@ -552,14 +552,20 @@ TEST(ResampleSplit, AnOpenSquareStopsWhenEveryRegionMeetsTheTargetRimIncluded) {
         }
         (edge < 2 * s ? band : inner) += 1;
         worst_z = std::max(worst_z, static_cast<double>(std::abs(p.z())));
-        colour = std::max({colour, std::abs(c.colors[i][0] - 0.5 * (p.x() + 1)), std::abs(c.colors[i][1] - 0.5 * (p.y() + 1))});
+        colour = std::max({colour, std::abs(c.colors[i][0] - 0.5 * (p.x() + 1)),
+                           std::abs(c.colors[i][1] - 0.5 * (p.y() + 1))});
     }
     const double band_area = 4.0 - (2.0 - 4 * s) * (2.0 - 4 * s), inner_area = 4.0 - band_area;
-    const double ratio = (static_cast<double>(band) / band_area) / (static_cast<double>(inner) / inner_area);
-    std::printf("split plane: %zu -> %zu (lattice %.0f) in %d rounds, %zu rim samples, %zu above target; NN mean %.4f "
-                "CV %.3f; rim band density / inner %.3f, %zu outside, %zu more than s; colour inside %.4f\n",
-                input.size(), c.size(), lattice, r.report.iterations, r.report.rim_samples, r.report.above_target,
-                r.report.spacing_mean, r.report.spacing_cv, ratio, outside, beyond, colour);
+    const double ratio =
+        (static_cast<double>(band) / band_area) / (static_cast<double>(inner) / inner_area);
+    std::printf(
+        "split plane: %zu -> %zu (lattice %.0f) in %d rounds, %zu rim samples, %zu above target; "
+        "NN mean %.4f "
+        "CV %.3f; rim band density / inner %.3f, %zu outside, %zu more than s; colour inside "
+        "%.4f\n",
+        input.size(), c.size(), lattice, r.report.iterations, r.report.rim_samples,
+        r.report.above_target, r.report.spacing_mean, r.report.spacing_cv, ratio, outside, beyond,
+        colour);
     EXPECT_LT(r.report.iterations, kMaxSplitRounds);
     EXPECT_EQ(r.report.above_target, 0u);
     EXPECT_EQ(r.report.above_target_regions, 0u);
