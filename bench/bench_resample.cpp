@@ -14,6 +14,7 @@
 #include <cstdlib>
 
 #include "bench_resample_common.h"
+#include "surfel/io/ply.h"
 #include "surfel/resample/resample.h"
 #include "surfel/surface/local_analysis.h"
 
@@ -30,6 +31,12 @@ namespace {
 
 nlohmann::json Ours(const ResampleCase& c) {
     nlohmann::json j;
+    // SURFEL_BENCH_MEASURE=FILE.ply: the case's measures of a cloud resampled elsewhere (e.g. by
+    // `surfel resample --method split` of two builds), no resampling here.
+    if (const char* path = std::getenv("SURFEL_BENCH_MEASURE")) {
+        MeasureResample(c, ReadPly(path).positions, j);
+        return j;
+    }
     PointCloud input;
     input.positions = Dataset(c.dataset).positions;  // points only: normals are estimated inside
     ResampleOptions o;

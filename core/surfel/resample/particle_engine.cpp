@@ -30,6 +30,12 @@ constexpr int kWalkNeighbors = 8;
 constexpr double kSkin = 0.5;
 // Particles per block of the neighbour-list build (each block one output buffer).
 constexpr std::size_t kListBlock = 1024;
+// Relax with rim directions: how far past a rim sample of the input (along its outward
+// direction, in units of its reach) a move may go. On the open square of the split tests
+// (1500 samples to spacing 0.02): 0 (not past it) squeezed the samples against the rim samples'
+// jagged tangent lines (NN CV 0.227, 32 rounds); 0.25: 15 rounds, CV 0.063, 75 samples more
+// than a spacing past the square's edge; none (only the reach): 20 rounds, CV 0.049, 748 past it.
+constexpr float kRimMargin = 0.25f;
 }  // namespace
 
 std::vector<double> CommonScaleVariation(const KdTree& tree, std::span<const float> variation) {
@@ -203,7 +209,7 @@ std::span<const std::uint32_t> ParticleEngine::GraphRow(std::uint32_t i,
 
 ParticleEngine::~ParticleEngine() = default;
 
-Vec3f ParticleEngine::OntoSurface(Vec3f moved) const {
+Vec3f ParticleEngine::OntoSurface(Vec3f moved, std::span<const Vec3f> rim_outward) const {
     const std::span<const Vec3f> points = input_.positions;
     const std::uint32_t q = tree_->Nearest(moved).index;
     const Vec3f& nq = Normal(q);
@@ -211,8 +217,14 @@ Vec3f ParticleEngine::OntoSurface(Vec3f moved) const {
     // Stay on the sampled surface: at an open boundary (a scan's edge, a hole) the tangent plane
     // goes on where the samples stop, and particles pushed outward would drift along it. Keep
     // them within the 6-neighbour radius of the closest original point.
+    const float reach = std::min(reach_radius_[q], 2.0f * median_radius_);
+    // Past a rim sample of the input by at most kRimMargin of that radius along its outward
+    // direction (Relax with rim directions).
+    if (!rim_outward.empty())
+        moved -= std::max(0.0f, (moved - points[q]).dot(rim_outward[q]) - kRimMargin * reach) *
+                 rim_outward[q];
     const Vec3f off = moved - points[q];
-    const float reach = std::min(reach_radius_[q], 2.0f * median_radius_), len_off = off.norm();
+    const float len_off = off.norm();
     if (len_off > reach) moved = points[q] + off * (reach / len_off);
     return moved;
 }
@@ -262,7 +274,9 @@ Vec3f ParticleEngine::OntoPlane(Vec3f moved, std::uint32_t q) const {
 }
 
 void ParticleEngine::Relax(std::vector<Vec3f>& positions, double radius, int iterations,
-                           const std::vector<std::uint8_t>* movable) const {
+                           const std::vector<std::uint8_t>* movable,
+                           std::span<const Vec3f> rim_outward) const {
+    SURFEL_CHECK(rim_outward.empty() || rim_outward.size() == input_.size(), rim_outward.size());
     const std::size_t m = positions.size();
     const float r = static_cast<float>(radius);
     std::vector<Vec3f> next(m);
@@ -283,7 +297,7 @@ void ParticleEngine::Relax(std::vector<Vec3f>& positions, double radius, int ite
                 Vec3d step = force * (kRepulsionGain / r);  // as in Run
                 const double len = step.norm();
                 if (len > kMaxStep * r) step *= kMaxStep * r / len;
-                next[p] = OntoSurface(x + step.cast<float>());
+                next[p] = OntoSurface(x + step.cast<float>(), rim_outward);
             }
         });
         positions.swap(next);

@@ -142,9 +142,14 @@ public:
     /// linear repulsion (eq. 2.2-2.3, as in Run) among `positions` within `radius` (model units,
     /// > 0), each move put back onto the tangent plane of the closest input point and within its
     /// reach. Deterministic whatever the thread count. With `movable`, only the positions it
-    /// flags move (the others still push): the local relaxation of a split round.
+    /// flags move (the others still push): the local relaxation of a split round. With
+    /// `rim_outward` (one unit vector per input point, zero except at the input's rims), a move
+    /// whose closest input point is a rim sample keeps no component along its outward direction
+    /// beyond it: the samples stay on the sampled side of the rim instead of drifting up to the
+    /// reach past it.
     void Relax(std::vector<Vec3f>& positions, double radius, int iterations,
-               const std::vector<std::uint8_t>* movable = nullptr) const;
+               const std::vector<std::uint8_t>* movable = nullptr,
+               std::span<const Vec3f> rim_outward = {}) const;
 
     /// The kd-tree over the input positions.
     const KdTree& tree() const { return *tree_; }
@@ -160,7 +165,8 @@ public:
                                             std::vector<std::uint32_t>& buffer) const;
     // A moved particle back onto the sampled surface (2.3.3): the tangent plane of the closest
     // original point, within that point's reach.
-    Vec3f OntoSurface(Vec3f moved) const;
+    // With `rim_outward` (see Relax), not past a rim sample of the input.
+    Vec3f OntoSurface(Vec3f moved, std::span<const Vec3f> rim_outward = {}) const;
     // The same with the closest original point found by WalkNearest from `home`, which it updates.
     Vec3f OntoSurface(Vec3f moved, std::uint32_t& home) const;
     // The input point closest to x by a greedy walk over the input's k-nearest-neighbour graph

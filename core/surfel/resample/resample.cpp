@@ -6,6 +6,8 @@
 #include <Eigen/Dense>
 #include <algorithm>
 #include <cmath>
+#include <numbers>
+#include <numeric>
 #include <sstream>
 #include <string>
 
@@ -13,8 +15,8 @@
 #include "surfel/base/validate.h"
 #include "surfel/resample/particle_engine.h"
 #include "surfel/spatial/kd_tree.h"
-#include "surfel/spatial/uniform_grid.h"
 #include "surfel/spatial/neighbor_radii.h"
+#include "surfel/spatial/uniform_grid.h"
 #include "surfel/surface/local_analysis.h"
 #include "surfel/surface/poly_fit.h"
 
@@ -42,6 +44,23 @@ namespace {
 constexpr int kInterpolationNeighbors = 10;
 // Dynamic sampling: the neighbours of the tangent ellipse, and the relaxation steps per round.
 constexpr int kSplitNeighbors = 6;
+// Rim samples (MeasureStretch): the neighbours whose angles around a sample are compared, and
+// the largest angle between two consecutive ones that the interior leaves (a rim: ~180 degrees;
+// a random sampling's 16 nearest leave more than 150 degrees at one sample in 200, the relaxed
+// samples of a split round at far fewer).
+constexpr int kSplitBoundaryNeighbors = 16;
+constexpr int kSplitInputRimNeighbors = 32;
+constexpr double kSplitRimGap = 5.0 * std::numbers::pi / 6.0;
+// Splitting stops early where it does not converge: once the samples above the target are at
+// most kSplitStallShare of all and more than kSplitStallRatio of those kSplitStallRounds rounds
+// before. On the bunny at spacing 0.0005 the rounds after the 10th split 40-230 samples each, at
+// its creases (the base's edge, the ear tips: each side's samples lie on its own tangent planes
+// and the gap between the sides stays 1.6-1.7 spacings in space), down by ~1/3 per 4 rounds, up
+// to kMaxSplitRounds; closed shapes and the bunny at 0.001 halve them every round or two until
+// none is left.
+constexpr double kSplitStallShare = 1e-3;
+constexpr double kSplitStallRatio = 0.5;
+constexpr int kSplitStallRounds = 4;
 constexpr int kSplitRelaxIterations = 10;
 constexpr double kSplitRelaxRadius = 1.0;
 // How far from a split sample (in target spacings) its round's relaxation moves samples. At 2 the
@@ -257,6 +276,156 @@ void RunMls(const PointCloud& input, const KdTree& tree, std::span<const Vec3f> 
     tracker.Advance(0.1);
 }
 
+// The largest angle between consecutive neighbours around a point, its neighbours (`row`)
+// projected on the tangent plane `frame` (notes 1.2's boundary test: at a rim of the sampled
+// surface the neighbours lie on one side, ~180 degrees left empty), and the unit direction of
+// its middle in the frame's (u, v).
+struct AngleGap {
+    double angle = 0.0;
+    Eigen::Vector2d middle = Eigen::Vector2d::Zero();
+};
+
+AngleGap LargestGap(const LocalFrame& frame, std::span<const Vec3f> points,
+                    std::span<const std::uint32_t> row) {
+    std::array<double, kSplitInputRimNeighbors> angle{};
+    const int count = std::min<int>(kSplitInputRimNeighbors, static_cast<int>(row.size()));
+    for (int j = 0; j < count; ++j) {
+        const Vec3d l = frame.ToLocal(points[row[j]].cast<double>());
+        angle[j] = std::atan2(l.y(), l.x());
+    }
+    AngleGap g;
+    if (count == 0) return g;
+    std::sort(angle.begin(), angle.begin() + count);
+    g.angle = angle[0] + 2.0 * std::numbers::pi - angle[count - 1];
+    double middle = angle[count - 1] + 0.5 * g.angle;
+    for (int j = 1; j < count; ++j)
+        if (angle[j] - angle[j - 1] > g.angle)
+            g.angle = angle[j] - angle[j - 1], middle = angle[j - 1] + 0.5 * g.angle;
+    g.middle = Eigen::Vector2d(std::cos(middle), std::sin(middle));
+    return g;
+}
+
+// The stretch of one sample (notes 3.2.2): the tangent ellipse of its neighbours, as the
+// spacing along the main axis, sqrt(2 lambda_max) of the second moments sum d d^T / k of the k
+// nearest in the tangent plane (s^2 / 2 I for k = 6 on a hexagonal lattice of spacing s), and
+// that axis.
+//
+// At a rim of the surface (a scan's edge, a hole) the neighbourhood is one-sided, and the 6
+// nearest reach farther along the rim (a lattice row's edge sample has 4 neighbours at s, the
+// 5th and 6th at sqrt(3) s: 1.53 s), so its ellipse stays above the target however often it is
+// split: that kept the bunny splitting at its holes for all kMaxSplitRounds rounds. A sample is
+// at a rim when its closest input sample is at one or next to one (`outward`, that rim's
+// direction, non-zero; the input, which never moves, says where the surface ends, so a gap the
+// densification has not filled yet is not taken for a rim) and its own kSplitBoundaryNeighbors
+// nearest (`row`; a shorter row skips the test) leave a gap of more than kSplitRimGap on that side.
+// It is judged by the interior side alone: the lattice's neighbours in the covered angle theta, 6
+// theta / 2 pi + 1 of the nearest (4 at a straight rim: 1.12 s on the lattice), their ellipse
+// mirrored across the rim (the cross term between along and across it dropped, as if the other side
+// were there).
+struct Stretch {
+    float extent = 0.0f;
+    Vec3f axis = Vec3f::Zero();
+    std::uint8_t rim = 0;
+};
+
+Stretch MeasureStretch(std::span<const Vec3f> pos, std::size_t i, const Vec3f& normal,
+                       const Vec3f& outward, std::span<const std::uint32_t> row) {
+    const LocalFrame frame = LocalFrame::FromNormal(pos[i].cast<double>(), normal.cast<double>());
+    const int k = std::min<int>(kSplitNeighbors, static_cast<int>(row.size()));
+    std::array<Eigen::Vector2d, kSplitNeighbors> d;
+    for (int j = 0; j < k; ++j) {
+        const Vec3d l = frame.ToLocal(pos[row[j]].cast<double>());
+        d[j] = Eigen::Vector2d(l.x(), l.y());
+    }
+    Stretch st;
+    AngleGap gap;
+    if (outward != Vec3f::Zero() && static_cast<int>(row.size()) >= kSplitBoundaryNeighbors) {
+        gap = LargestGap(frame, pos, row);
+        const Vec3d o = frame.DirToLocal(outward.cast<double>());
+        st.rim = gap.angle > kSplitRimGap && gap.middle.dot(Eigen::Vector2d(o.x(), o.y())) > 0;
+    }
+    Eigen::Matrix2d C = Eigen::Matrix2d::Zero();
+    if (!st.rim) {
+        for (int j = 0; j < k; ++j) C += d[j] * d[j].transpose() / static_cast<double>(k);
+    } else {
+        const double covered = 2.0 * std::numbers::pi - gap.angle;
+        const int kb = std::clamp(
+            static_cast<int>(std::lround(6.0 * covered / (2.0 * std::numbers::pi))) + 1, 2, k);
+        const Eigen::Vector2d out = gap.middle, along(-out.y(), out.x());
+        double aa = 0.0, oo = 0.0;
+        for (int j = 0; j < kb; ++j) {
+            const double a = d[j].dot(along), b = d[j].dot(out);
+            aa += a * a / kb;
+            oo += b * b / kb;
+        }
+        C = aa * along * along.transpose() + oo * out * out.transpose();
+    }
+    const Eigen::SelfAdjointEigenSolver<Eigen::Matrix2d> eig(C);
+    const Eigen::Vector2d e = eig.eigenvectors().col(1);
+    st.extent = static_cast<float>(std::sqrt(2.0 * std::max(0.0, eig.eigenvalues()[1])));
+    st.axis = (e.x() * frame.u + e.y() * frame.v).cast<float>();
+    return st;
+}
+
+// The rims of the input (see MeasureStretch): for each input sample whose kSplitInputRimNeighbors
+// nearest leave a gap above kSplitRimGap (at 32 neighbours a random sampling's interior does so
+// at one sample in 10^7), the unit direction of the gap's middle; zero elsewhere. `near_rim`
+// (optional): the same, extended to the samples next to a rim sample.
+std::vector<Vec3f> InputRims(const KdTree& tree, std::span<const Vec3f> normals,
+                             std::vector<Vec3f>* near_rim) {
+    const std::span<const Vec3f> points = tree.points();
+    const std::size_t n = points.size();
+    std::vector<Vec3f> outward(n, Vec3f::Zero());
+    if (near_rim) near_rim->assign(n, Vec3f::Zero());
+    if (n <= static_cast<std::size_t>(kSplitInputRimNeighbors)) return outward;
+    const KnnTable knn = tree.KnnAll(kSplitInputRimNeighbors);
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 1024), [&](const auto& range) {
+        for (std::size_t i = range.begin(); i != range.end(); ++i) {
+            const LocalFrame frame =
+                LocalFrame::FromNormal(points[i].cast<double>(), normals[i].cast<double>());
+            const AngleGap gap = LargestGap(frame, points, knn.Row(i));
+            if (gap.angle > kSplitRimGap)
+                outward[i] = (gap.middle.x() * frame.u + gap.middle.y() * frame.v)
+                                 .normalized()
+                                 .cast<float>();
+        }
+    });
+    if (near_rim) {
+        // The rim and the samples next to it (one of its kSplitNeighbors nearest is a rim sample,
+        // whose direction it takes): a sample pushed past the rim can have one of those closest.
+        near_rim->assign(outward.begin(), outward.end());
+        for (std::size_t i = 0; i < n; ++i)
+            if (outward[i] == Vec3f::Zero())
+                for (const std::uint32_t j : knn.Row(i).first(kSplitNeighbors))
+                    if (outward[j] != Vec3f::Zero()) {
+                        (*near_rim)[i] = outward[j];
+                        break;
+                    }
+    }
+    return outward;
+}
+
+// Regions of `flagged` samples (sorted indices of m): groups linked where one is among the other's
+// kSplitNeighbors nearest (union-find over the rows of `nn`).
+std::size_t CountRegions(std::span<const std::uint32_t> flagged, const KnnTable& nn,
+                         std::size_t m) {
+    std::vector<std::uint32_t> parent(m, UINT32_MAX);
+    for (const std::uint32_t i : flagged) parent[i] = i;
+    const auto find = [&](std::uint32_t i) {
+        while (parent[i] != i) i = parent[i] = parent[parent[i]];
+        return i;
+    };
+    std::size_t regions = flagged.size();
+    for (const std::uint32_t i : flagged)
+        for (const std::uint32_t j :
+             nn.Row(i).first(std::min<std::size_t>(kSplitNeighbors, nn.Row(i).size())))
+            if (j != UINT32_MAX && parent[j] != UINT32_MAX) {
+                const std::uint32_t a = find(i), b = find(j);
+                if (a != b) parent[std::max(a, b)] = std::min(a, b), --regions;
+            }
+    return regions;
+}
+
 // Dynamic sampling (notes 3.2.2-3.2.3): rounds of measuring the local spacing, splitting every
 // sample whose tangent ellipse is too long along its main axis into two on that axis, relaxing;
 // then a final MLS projection and attributes from the zombies (the input, never moved).
@@ -281,51 +450,81 @@ void RunSplit(const PointCloud& input, const KdTree& input_tree, std::span<const
     std::vector<Vec3f> pos(input.positions), nrm(normals.begin(), normals.end());
     std::vector<float> extent;
     std::vector<Vec3f> axis;
+    std::vector<std::uint8_t> rim;
+    std::vector<std::size_t> above;  // samples above the target, per round
+    // Each sample's closest input sample (its normal's and rim direction's source).
+    std::vector<std::uint32_t> home(pos.size());
+    std::iota(home.begin(), home.end(), 0u);
+    std::vector<Vec3f> near_rims;
+    const std::vector<Vec3f> rims = InputRims(input_tree, normals, &near_rims);
+    // Stretch (3.2.2) of every sample (MeasureStretch: the spacing along its tangent ellipse's
+    // main axis and that axis; at a rim, of the interior side only) into extent, axis and rim;
+    // returns the kSplitNeighbors-nearest table. The kSplitBoundaryNeighbors-row (whose first
+    // columns are the table's row) only for samples whose closest input sample is at a rim.
+    const auto measure = [&](const KdTree& tree) {
+        const std::size_t m = pos.size();
+        const KnnTable nn = tree.KnnAll(std::min<int>(kSplitNeighbors, static_cast<int>(m) - 1));
+        const int kb = std::min<int>(kSplitBoundaryNeighbors, static_cast<int>(m) - 1);
+        extent.assign(m, 0.0f);
+        axis.assign(m, Vec3f::Zero());
+        rim.assign(m, 0);
+        tbb::parallel_for(tbb::blocked_range<std::size_t>(0, m, 1024), [&](const auto& range) {
+            std::array<std::uint32_t, kSplitBoundaryNeighbors> row{};
+            std::vector<Neighbor> scratch;
+            for (std::size_t i = range.begin(); i != range.end(); ++i) {
+                const Vec3f& outward = near_rims[home[i]];
+                std::span<const std::uint32_t> r = nn.Row(i);
+                if (outward != Vec3f::Zero() && kb == kSplitBoundaryNeighbors) {
+                    tree.KnnRow(i, kb, row.data(), nullptr, scratch);
+                    r = row;
+                }
+                const Stretch st = MeasureStretch(pos, i, nrm[i], outward, r);
+                extent[i] = st.extent;
+                axis[i] = st.axis;
+                rim[i] = st.rim;
+            }
+        });
+        return nn;
+    };
     int round = 0;
     for (; round < kMaxSplitRounds; ++round) {
         tracker.Check();
-        // Stretch (3.2.2): the tangent ellipse of the k nearest neighbours, sum d d^T / k in the
-        // tangent plane (s^2 / 2 I for a hexagonal lattice of spacing s): the spacing along the
-        // main axis, sqrt(2 lambda_max), and that axis.
+        // Stretch (3.2.2): the tangent ellipse of each sample's neighbourhood.
         const std::size_t m = pos.size();
         const KdTree tree(pos);
-        const int k = std::min<int>(kSplitNeighbors, static_cast<int>(m) - 1);
-        const KnnTable nn = tree.KnnAll(k);
-        extent.assign(m, 0.0f);
-        axis.assign(m, Vec3f::Zero());
-        tbb::parallel_for(tbb::blocked_range<std::size_t>(0, m, 1024), [&](const auto& range) {
-            for (std::size_t i = range.begin(); i != range.end(); ++i) {
-                const LocalFrame frame = LocalFrame::FromNormal(pos[i].cast<double>(), nrm[i].cast<double>());
-                Eigen::Matrix2d C = Eigen::Matrix2d::Zero();
-                for (const std::uint32_t j : nn.Row(i)) {
-                    const Vec3d l = frame.ToLocal(pos[j].cast<double>());
-                    const Eigen::Vector2d d(l.x(), l.y());
-                    C += d * d.transpose() / static_cast<double>(k);
-                }
-                const Eigen::SelfAdjointEigenSolver<Eigen::Matrix2d> eig(C);
-                const Eigen::Vector2d e = eig.eigenvectors().col(1);
-                extent[i] = static_cast<float>(std::sqrt(2.0 * std::max(0.0, eig.eigenvalues()[1])));
-                axis[i] = (e.x() * frame.u + e.y() * frame.v).cast<float>();
-            }
-        });
+        const KnnTable nn = measure(tree);
         std::vector<std::uint32_t> split;
         for (std::size_t i = 0; i < m; ++i)
             if (extent[i] > kSplitSlack * s) split.push_back(static_cast<std::uint32_t>(i));
-        if (split.empty()) break;
+        // Stop when every region meets the target; or when the regions left are a small share
+        // of the samples (kSplitStallShare) that kSplitStallRounds rounds of splitting did not
+        // halve: splitting does not converge there (the report counts them).
+        above.push_back(split.size());
+        report.above_target = split.size();
+        const std::size_t r = above.size() - 1;
+        if (split.empty() ||
+            (r >= kSplitStallRounds &&
+             static_cast<double>(split.size()) <= kSplitStallShare * static_cast<double>(m) &&
+             static_cast<double>(split.size()) >
+                 kSplitStallRatio * static_cast<double>(above[r - kSplitStallRounds]))) {
+            report.above_target_regions = CountRegions(split, nn, m);
+            break;
+        }
         // Split (fig. 3.15): p -> p -+ a/4 e on the main axis, a the spacing along it.
         for (const std::uint32_t i : split) {
             const Vec3f off = (0.25f * extent[i]) * axis[i];
             pos.push_back(pos[i] + off);
             nrm.push_back(nrm[i]);
+            home.push_back(home[i]);
             pos[i] -= off;
         }
         report.splits += split.size();
         // Relaxation (3.2.3): repulsion within the target spacing, kept on the surface, of the
         // samples within kSplitRelaxReach spacings of a split (a filter that "redistributes the
         // samples locally"): the rest, which met the spacing in an earlier round, stay put. On
-        // the bunny at s = 0.001 the rounds after the first split 10-1,000 samples each (the
-        // tangent ellipses of rim samples at its holes never meet the target), and relaxing every
-        // sample in each of 32 rounds took 11.6 s of an 11.6 s job (now 2.2 s, NN CV 0.066 -> 0.085).
+        // the bunny at s = 0.001 the rounds after the first split 10-1,000 samples each, and
+        // relaxing every sample in each round took 11.6 s of an 11.6 s job (then 2.2 s, NN CV
+        // 0.066 -> 0.085). Moves near the input's rims stay within kRimMargin of them (Relax).
         std::vector<std::uint8_t> movable(pos.size(), 0);
         {
             const float reach = static_cast<float>(kSplitRelaxReach * s);
@@ -334,14 +533,29 @@ void RunSplit(const PointCloud& input, const KdTree& input_tree, std::span<const
                 for (const std::size_t i : {std::size_t{split[t]}, m + t})
                     grid.ForEachWithin(pos[i], reach, [&](std::uint32_t j, const Vec3f&, float) { movable[j] = 1; });
         }
-        engine.Relax(pos, kSplitRelaxRadius * s, kSplitRelaxIterations, &movable);
-        tbb::parallel_for(tbb::blocked_range<std::size_t>(0, pos.size(), 1024), [&](const auto& range) {
-            for (std::size_t i = range.begin(); i != range.end(); ++i)
-                nrm[i] = normals[engine.tree().Nearest(pos[i]).index];
-        });
+        engine.Relax(pos, kSplitRelaxRadius * s, kSplitRelaxIterations, &movable, rims);
+        tbb::parallel_for(tbb::blocked_range<std::size_t>(0, pos.size(), 1024),
+                          [&](const auto& range) {
+                              for (std::size_t i = range.begin(); i != range.end(); ++i) {
+                                  home[i] = engine.tree().Nearest(pos[i]).index;
+                                  nrm[i] = normals[home[i]];
+                              }
+                          });
         tracker.Advance(0.7 / kMaxSplitRounds);
     }
     report.iterations = round;
+    if (round == kMaxSplitRounds) {
+        // Ran out of rounds: what the last round's splits left, measured once more.
+        const KdTree tree(pos);
+        const KnnTable nn = measure(tree);
+        std::vector<std::uint32_t> left;
+        for (std::size_t i = 0; i < pos.size(); ++i)
+            if (extent[i] > kSplitSlack * s) left.push_back(static_cast<std::uint32_t>(i));
+        report.above_target = left.size();
+        report.above_target_regions = CountRegions(left, nn, pos.size());
+    }
+    report.rim_samples =
+        static_cast<std::size_t>(std::count(rim.begin(), rim.end(), std::uint8_t{1}));
     report.max_spacing = extent.empty() ? 0.0 : *std::max_element(extent.begin(), extent.end());
     // Final MLS projection (as the particle engine's), normals like the closest input normal.
     const MlsSurface mls(input, engine.tree());

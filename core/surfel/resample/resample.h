@@ -36,11 +36,17 @@ enum class ResampleMethod {
     /// plane, s^2 / 2 I on a hexagonal lattice of spacing s), splitting every sample whose spacing
     /// along the main axis, sqrt(2 lambda_max), exceeds kSplitSlack x the target spacing into two
     /// samples a quarter of that spacing either side on the axis, and relaxing (linear repulsion
-    /// within the target spacing, on the tangent planes), until no sample exceeds it or
+    /// within the target spacing, on the tangent planes), until no sample exceeds it (every
+    /// region meets the target), or splitting stalls (the samples above it are at most 0.1 % of
+    /// all and 4 rounds did not halve them: creases where it does not converge), or
     /// kMaxSplitRounds; a final MLS projection; colours and attributes interpolated from the
-    /// input samples, which never move (the zombies). Only adds: regions already denser than the
-    /// target keep their samples. Target: `spacing`, or `target` read as the spacing of a
-    /// hexagonal lattice of that many points on the input's area (the count is not exact).
+    /// input samples, which never move (the zombies). Samples at a rim of the surface (the
+    /// input's rim, where the 32 nearest input samples leave an angle gap above 150 degrees,
+    /// and the sample's own 16 nearest leave one on that side) are judged by their interior side
+    /// only, and the relaxation keeps samples within a quarter of a rim sample's reach past it.
+    /// Only adds: regions already denser than the target keep their samples. Target: `spacing`,
+    /// or `target` read as the spacing of a hexagonal lattice of that many points on the
+    /// input's area (the count is not exact).
     kSplit,
 };
 
@@ -76,7 +82,8 @@ struct ResampleOptions {
     /// (area / (sqrt(3)/2 spacing^2) points); with `adaptive` it is the spacing where the
     /// surface variation equals its median. 0 = use `target`. Exactly one of the two is given
     /// (neither for mls). The split method splits until every sample's spacing along its
-    /// tangent ellipse's main axis is at most kSplitSlack x this.
+    /// tangent ellipse's main axis (at a rim: of its interior side) is at most kSplitSlack x
+    /// this, or splitting stalls (ResampleMethod::kSplit).
     double spacing = 0.0;
     /// Curvature-adaptive (2.3.4): repulsion radius scaled by 1 / sigma_n relative to the
     /// median, clamped to [1/2, 2], so up to 16x the density where the surface bends most;
@@ -155,8 +162,15 @@ struct ResampleReport {
     /// split method: samples split in all.
     std::size_t splits = 0;
     /// split method: the largest spacing along a tangent ellipse's main axis after the last
-    /// round (model units); <= kSplitSlack x the target spacing unless kMaxSplitRounds ran out.
+    /// round (model units); <= kSplitSlack x the target spacing when every region met it.
     double max_spacing = 0.0;
+    /// split method: samples whose spacing still exceeds kSplitSlack x the target after the last
+    /// round (0: every region meets the target), and the regions they form.
+    std::size_t above_target = 0;
+    std::size_t above_target_regions = 0;
+    /// split method: samples at a rim of the surface after the last round, judged by their
+    /// interior side.
+    std::size_t rim_samples = 0;
 };
 
 struct ResampleResult {

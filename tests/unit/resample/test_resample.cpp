@@ -495,6 +495,9 @@ TEST_P(SplitTo, EveryRegionMeetsTheTargetSpacingOnTheSurfaceWithColours) {
     // The stopping rule: every sample's spacing along its ellipse's main axis within the slack.
     EXPECT_LE(r.report.max_spacing, kSplitSlack * o.spacing);
     EXPECT_LT(r.report.iterations, kMaxSplitRounds);
+    EXPECT_EQ(r.report.above_target, 0u);
+    EXPECT_EQ(r.report.above_target_regions, 0u);
+    EXPECT_EQ(r.report.rim_samples, 0u);  // closed: no rim, every sample judged by its ellipse
     EXPECT_EQ(c.size(), input.size() + r.report.splits);  // a split adds exactly one sample
     EXPECT_NEAR(static_cast<double>(c.size()), lattice, 0.15 * lattice);
     EXPECT_NEAR(r.report.spacing_mean, o.spacing, 0.1 * o.spacing);
@@ -516,6 +519,66 @@ INSTANTIATE_TEST_SUITE_P(Resample, SplitTo, ::testing::Values(Shape::kSphere, Sh
                          [](const ::testing::TestParamInfo<Shape>& param_info) {
                              return std::string(ShapeName(param_info.param));
                          });
+
+// An open surface: the square [-1, 1]^2 (1500 random samples, spacing ~0.055) split to 0.02.
+// Its rim samples have one-sided neighbourhoods; judged by their interior side they meet the
+// target, so the rounds stop with every region met (before rim samples were judged, such rims
+// kept splitting for every one of kMaxSplitRounds), the rim band neither thinned (a hole opened)
+// nor piled up, and few samples pushed past the edge.
+TEST(ResampleSplit, AnOpenSquareStopsWhenEveryRegionMeetsTheTargetRimIncluded) {
+    PointCloud input = Sample(Shape::kPlane, 1500);
+    input.colors.resize(input.size());
+    for (std::size_t i = 0; i < input.size(); ++i) {
+        const Vec3f& p = input.positions[i];
+        input.colors[i] = {0.5f * (p.x() + 1), 0.5f * (p.y() + 1), 0.25f, 1.0f};
+    }
+    ResampleOptions o;
+    o.method = ResampleMethod::kSplit;
+    o.spacing = 0.02;
+    o.measure_error = false;
+    const ResampleResult r = Resample(input, o);
+    const PointCloud& c = r.cloud;
+    const double s = o.spacing, lattice = 4.0 / (std::sqrt(3.0) / 2.0 * s * s);
+    // Points in the band within 2 s inside the edge, deeper inside, outside, and more than s out.
+    std::size_t band = 0, inner = 0, outside = 0, beyond = 0;
+    double worst_z = 0.0, colour = 0.0;
+    for (std::size_t i = 0; i < c.size(); ++i) {
+        const Vec3f& p = c.positions[i];
+        const double edge = 1.0 - std::max(std::abs(p.x()), std::abs(p.y()));  // < 0 outside
+        if (edge < 0) {
+            ++outside;
+            beyond += edge < -s;
+            continue;
+        }
+        (edge < 2 * s ? band : inner) += 1;
+        worst_z = std::max(worst_z, static_cast<double>(std::abs(p.z())));
+        colour = std::max({colour, std::abs(c.colors[i][0] - 0.5 * (p.x() + 1)),
+                           std::abs(c.colors[i][1] - 0.5 * (p.y() + 1))});
+    }
+    const double band_area = 4.0 - (2.0 - 4 * s) * (2.0 - 4 * s), inner_area = 4.0 - band_area;
+    const double ratio =
+        (static_cast<double>(band) / band_area) / (static_cast<double>(inner) / inner_area);
+    std::printf(
+        "split plane: %zu -> %zu (lattice %.0f) in %d rounds, %zu rim samples, %zu above target; "
+        "NN mean %.4f "
+        "CV %.3f; rim band density / inner %.3f, %zu outside, %zu more than s; colour inside "
+        "%.4f\n",
+        input.size(), c.size(), lattice, r.report.iterations, r.report.rim_samples,
+        r.report.above_target, r.report.spacing_mean, r.report.spacing_cv, ratio, outside, beyond,
+        colour);
+    EXPECT_LT(r.report.iterations, kMaxSplitRounds);
+    EXPECT_EQ(r.report.above_target, 0u);
+    EXPECT_EQ(r.report.above_target_regions, 0u);
+    EXPECT_LE(r.report.max_spacing, kSplitSlack * s);
+    EXPECT_GT(r.report.rim_samples, 0.5 * 8 / s);  // at least half the lattice's 8 / s rim samples
+    EXPECT_LE(r.report.rim_samples, 2 * 8 / s);
+    EXPECT_NEAR(static_cast<double>(c.size()), lattice, 0.15 * lattice);
+    EXPECT_LE(r.report.spacing_cv, 0.15);
+    EXPECT_NEAR(ratio, 1.0, 0.25);  // neither thinned nor piled up at the rim
+    EXPECT_LE(static_cast<double>(beyond), 0.01 * static_cast<double>(c.size()));
+    EXPECT_LE(worst_z, 1e-5);
+    EXPECT_LE(colour, 0.01);
+}
 
 TEST(ResampleSplit, SameOutputWhateverTheThreadCountAndDenseInputStays) {
     const PointCloud input = Sample(Shape::kSphere, 800);

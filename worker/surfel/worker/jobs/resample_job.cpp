@@ -67,6 +67,9 @@ nlohmann::json ResampleReportJson(const ResampleReport& r) {
     if (r.method == ResampleMethodName(ResampleMethod::kSplit)) {
         j["splits"] = r.splits;
         j["max_spacing"] = r.max_spacing;
+        j["above_target"] = r.above_target;
+        j["above_target_regions"] = r.above_target_regions;
+        j["rim_samples"] = r.rim_samples;
     }
     if (r.error) j["error"] = SurfaceErrorJson(*r.error, r.error_time_ms);
     return j;
