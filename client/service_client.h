@@ -62,9 +62,7 @@ public:
     /// and less than half of the file is sent, the upload is cancelled and the stored cloud
     /// returned (deduplicated; otherwise the server deduplicates it), and at the end the
     /// server's cloud id must equal it (std::runtime_error otherwise: the file changed).
-    /// 1 MiB chunks (the server's max_chunk_bytes): a quarter of the messages of 256 KiB ones,
-    /// and of the thread wake-ups on both sides (bench/README.md "Session 12 (upload helper)").
-    v1::Cloud UploadFile(const std::string& path, const ByteProgress& progress = {}, std::size_t chunk = 1 << 20);
+    v1::Cloud UploadFile(const std::string& path, const ByteProgress& progress = {}, std::size_t chunk = 256 << 10);
     v1::Cloud GetCloud(const std::string& id);
     v1::Job Submit(const v1::JobSpec& spec);
     /// Follows a job to its end. `on_running` gets (stage, fraction); `on_queued` the position.
