@@ -231,7 +231,8 @@ void AaSurface::SetUpScales() {
     AaOptions& o = impl_->opt;
     const SamplingDensity density = ComputeSamplingDensity(cloud.positions, o.ball_k);
     impl_->ball_radius = density.radius;
-    if (o.h == 0) o.h = 0.7f * DefaultScale(density);
+    // DefaultScale is 2 median spacings; half of kSurfaceScaleSpacings of it (0.7f exactly).
+    if (o.h == 0) o.h = (0.5f * kSurfaceScaleSpacings) * DefaultScale(density);
     if (!(o.h > 0)) throw Error(ErrorCode::kInvalidArgument, "cannot derive h from the cloud (all points coincide); pass h");
     if (o.precision == 0) o.precision = 1e-3f * o.h;
     if (o.bandwidth == AaBandwidth::kFixed) {
