@@ -3,6 +3,7 @@
 // integration tests.
 
 #include <signal.h>
+#include <sys/prctl.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -29,8 +30,10 @@ public:
         std::vector<std::string> args = {std::string(SURFEL_BIN_DIR) + "/surfel-server", "--port", "0", "--data-dir",
                                          data_dir_, "--port-file", port_file, "--log-level", "warn"};
         args.insert(args.end(), extra.begin(), extra.end());
+        const pid_t parent = getpid();
         pid_ = fork();
         if (pid_ == 0) {
+            DieWithParent(parent);
             std::vector<char*> argv;
             for (auto& a : args) argv.push_back(a.data());
             argv.push_back(nullptr);
@@ -60,8 +63,19 @@ public:
         return WIFEXITED(status) ? WEXITSTATUS(status) : 128 + WTERMSIG(status);
     }
 
+    /// In a forked child: ends it with SIGKILL when the test process ends, however it ends. A
+    /// test that aborts (a failed ASSERT in a helper thread, a sanitizer report) would otherwise
+    /// leave the server running and holding ctest's output pipe, and ctest would wait for it until
+    /// the test's timeout. The signal follows the forking thread, so construct servers in the
+    /// test's own thread (every test does).
+    static void DieWithParent(pid_t parent) {
+        ::prctl(PR_SET_PDEATHSIG, SIGKILL);
+        if (getppid() != parent) _exit(127);  // the parent ended before prctl took effect
+    }
+
     std::string target() const { return "127.0.0.1:" + std::to_string(port_); }
     int port() const { return port_; }
+    pid_t pid() const { return pid_; }
 
 private:
     std::string data_dir_;

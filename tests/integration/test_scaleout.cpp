@@ -57,8 +57,10 @@ class WorkerProcess {
                                          "--threads",
                                          "1"};
         args.insert(args.end(), extra.begin(), extra.end());
+        const pid_t parent = getpid();
         pid_ = fork();
         if (pid_ == 0) {
+            testing::ServerProcess::DieWithParent(parent);
             const int fd = ::open(log.c_str(), O_WRONLY | O_CREAT | O_APPEND, 0644);
             ::dup2(fd, 1);
             ::dup2(fd, 2);

@@ -1,6 +1,11 @@
 // Integration tests: the real surfel-server on a free loopback port, driven by the client library
 // and by the real `surfel` CLI.
+#include <arpa/inet.h>
 #include <gtest/gtest.h>
+#include <netinet/in.h>
+#include <sys/socket.h>
+#include <sys/wait.h>
+#include <unistd.h>
 
 #include <atomic>
 #include <chrono>
@@ -59,6 +64,49 @@ protected:
     std::string data_;
 };
 fs::path ServiceTest::dir_;
+
+// A test process that dies without running destructors (an abort, a sanitizer's report) takes
+// its server with it: otherwise the orphan keeps ctest's output pipe open and ctest hangs until
+// the test's timeout instead of reporting the failure.
+TEST_F(ServiceTest, TheServerEndsWithTheTestProcessThatStartedIt) {
+    int pipe_fds[2];
+    ASSERT_EQ(::pipe(pipe_fds), 0);
+    const pid_t test_process = ::fork();
+    ASSERT_GE(test_process, 0);
+    if (test_process == 0) {
+        ::close(pipe_fds[0]);
+        testing::ServerProcess server(data_);
+        const int ids[2] = {server.port(), static_cast<int>(server.pid())};
+        if (::write(pipe_fds[1], ids, sizeof ids) != sizeof ids) ::_exit(2);
+        ::_exit(0);  // no destructor: the server is not killed by ServerProcess
+    }
+    ::close(pipe_fds[1]);
+    int ids[2] = {0, 0};
+    const bool got_port = ::read(pipe_fds[0], ids, sizeof ids) == sizeof ids;
+    const int port = ids[0];
+    ::close(pipe_fds[0]);
+    int status = 0;
+    ASSERT_EQ(::waitpid(test_process, &status, 0), test_process);
+    ASSERT_TRUE(got_port);
+    ASSERT_TRUE(WIFEXITED(status) && WEXITSTATUS(status) == 0);
+
+    const auto accepts = [port] {
+        const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
+        sockaddr_in addr{};
+        addr.sin_family = AF_INET;
+        addr.sin_port = htons(static_cast<uint16_t>(port));
+        addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+        const bool ok = ::connect(fd, reinterpret_cast<sockaddr*>(&addr), sizeof addr) == 0;
+        ::close(fd);
+        return ok;
+    };
+    const auto deadline = Clock::now() + std::chrono::seconds(10);
+    while (accepts() && Clock::now() < deadline) std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    if (accepts()) {
+        ::kill(ids[1], SIGKILL);  // an orphan (pid ids[1], the test process's child) is ours to end
+        ADD_FAILURE() << "surfel-server on port " << port << " outlived the process that started it";
+    }
+}
 
 TEST_F(ServiceTest, UploadRenderAndDecodeTheExr) {
     testing::ServerProcess server(data_);
