@@ -56,6 +56,8 @@ def main():
         ("resample", "bunny.ply", ["--target", "200000", "--iterations", "10"]),
         ("resample", "dragon_scan.ply", ["--target", "20000", "--iterations", "10"]),
         ("resample", "bunny_scan.ply", ["--method", "mls"]),
+        ("resample", "dragon_scan.ply", ["--method", "split", "--spacing", "0.0015"]),
+        ("resample", "buddha_scan.ply", ["--method", "split", "--spacing", "0.001"]),
         ("boolean", "bunny.ply", ["--op", "union", "--translate", "0.03,0,0"]),
         ("boolean", "dragon.ply", ["--op", "difference", "--translate", "0.02,0.01,0"]),
     ]
