@@ -60,6 +60,47 @@ FitStats ComputeFitStats(const NeighborBatch& nb, int degree, double h, const Po
     return st;
 }
 
+// The eigenvector of the smallest eigenvalue of the symmetric 3x3 matrix `mat` (lower triangle
+// read), to the bit as Eigen::SelfAdjointEigenSolver<Matrix3d>::computeDirect(mat)
+// .eigenvectors().col(0): Eigen 3.4's direct_selfadjoint_eigenvalues<., 3, false>::run step for
+// step, with its own computeRoots and extract_kernel, less what col(0) does not need (the other
+// eigenvectors where col(0) is found first, the eigenvalues' rescaling). The reference plane's
+// normal (one per iteration per projection) spent a third of its solve there.
+Vec3d SmallestEigenvector(const Eigen::Matrix3d& mat) {
+    using Direct = Eigen::internal::direct_selfadjoint_eigenvalues<Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d>, 3, false>;
+    const double eps = Eigen::NumTraits<double>::epsilon();
+    // Shifted to the mean eigenvalue and scaled into [-1, 1], as Eigen does.
+    const double shift = mat.trace() / 3.0;
+    Eigen::Matrix3d scaled = mat.selfadjointView<Eigen::Lower>();
+    scaled.diagonal().array() -= shift;
+    const double scale = scaled.cwiseAbs().maxCoeff();
+    if (scale > 0) scaled /= scale;
+    Vec3d eivals;
+    Direct::computeRoots(scaled, eivals);
+    if ((eivals(2) - eivals(0)) <= eps) return Vec3d::UnitX();  // Eigen: the identity
+    Eigen::Matrix3d eivecs, tmp = scaled;
+    double d0 = eivals(2) - eivals(1);
+    const double d1 = eivals(1) - eivals(0);
+    if (d0 > d1) {  // the largest eigenvalue is the most distinct: its vector first (k = 2, l = 0)
+        d0 = d1;
+        tmp.diagonal().array() -= eivals(2);
+        Direct::extract_kernel(tmp, eivecs.col(2), eivecs.col(0));
+        if (d0 <= 2 * eps * d1) {
+            eivecs.col(0) -= eivecs.col(2).dot(eivecs.col(0)) * eivecs.col(0);
+            eivecs.col(0).normalize();
+        } else {
+            tmp = scaled;
+            tmp.diagonal().array() -= eivals(0);
+            Vec3d dummy;
+            Direct::extract_kernel(tmp, eivecs.col(0), dummy);
+        }
+    } else {  // the smallest is (k = 0): Eigen's next two vectors leave col(0) alone
+        tmp.diagonal().array() -= eivals(0);
+        Direct::extract_kernel(tmp, eivecs.col(0), eivecs.col(2));
+    }
+    return eivecs.col(0);
+}
+
 // The points within `reach` of a centre c, in the grid's cell order, as structure of arrays: a
 // per-thread superset of the neighbourhoods of the next projections (the render's, aa_surface.cpp).
 // ProjectAll visits its points in a spatial order, so a gather within `radius` of x whose ball
@@ -341,9 +382,7 @@ struct MlsSurface::Impl {
             const Vec3d c = Vec3d(wm.x, wm.y, wm.z) / wm.w;
             Eigen::Matrix3d C = wm.Second();
             C -= wm.w * c * c.transpose();
-            Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es;
-            es.computeDirect(C);
-            Vec3d nn = es.eigenvectors().col(0).normalized();
+            Vec3d nn = SmallestEigenvector(C).normalized();  // computeDirect(C)'s col(0), to the bit
             if (it > 0 && nn.dot(n) < 0) nn = -nn;
             n = nn;
             // The foot of x on the plane through c with normal n: x - ((x - c) . n) n, relative to x.
