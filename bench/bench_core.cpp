@@ -34,7 +34,9 @@ void Normals(benchmark::State& state, const std::string& d) {
 // MLS support (issue 19.5): theta(d) = exp(-d^2 / h^2) over the neighbours within cutoff x h.
 // mls_project: the defaults (h = 2 x median spacing, cutoff 3); mls_project_c<C>: cutoff C / 10
 // (fewer neighbours, the weights beyond are below exp(-C^2/100)). SURFEL_BENCH_MLS_H (a multiple
-// of the default h) and SURFEL_BENCH_MLS_CUTOFF override the first row for sweeps.
+// of the default h) and SURFEL_BENCH_MLS_CUTOFF override the first row for sweeps;
+// SURFEL_BENCH_MLS_MIN_NEIGHBORS sets min_neighbors (PCL projects a point with 3 or more
+// neighbours within its radius, itself included; Surfel's default asks for 4).
 void Mls(benchmark::State& state, const std::string& d, float cutoff) {
     const PointCloud& c = Dataset(d);
     MlsSurface::Batch b;
@@ -47,6 +49,7 @@ void Mls(benchmark::State& state, const std::string& d, float cutoff) {
         MlsOptions o;
         o.degree = 2;
         o.cutoff = cutoff;
+        if (const char* e = std::getenv("SURFEL_BENCH_MLS_MIN_NEIGHBORS")) o.min_neighbors = std::atoi(e);
         if (h_scale != 1.0f) o.h = h_scale * 2.0f * MedianSpacing(tree);
         const MlsSurface mls(c, tree, o);
         h = mls.h();
