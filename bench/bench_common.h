@@ -42,6 +42,9 @@ inline std::string MeshOf(const std::string& dataset) {
     if (dataset.rfind("bunny", 0) == 0) return "bunny_mesh";
     for (const char* m : {"dragon", "buddha", "armadillo", "lucy", "igea", "horse", "maxplanck"})
         if (dataset == m) return std::string(m) + "_mesh";
+    // The range scans registered into their reconstruction's frame (data/README.md).
+    for (const char* m : {"dragon", "buddha"})
+        if (dataset == std::string(m) + "_scan") return std::string(m) + "_mesh";
     return "";
 }
 
@@ -206,9 +209,11 @@ inline const std::vector<std::string>& CoreDatasets() {
     static const std::vector<std::string> d = {"bunny", "bunny_scans_merged"};
     return d;
 }
-/// MLS (issue 19.5): the bunny, one raw range scan of it, the merged scans (person_scan has no mesh).
+/// MLS (issue 19.5): the bunny, every raw range scan that has a mesh (three of the bunny, the
+/// merged ten, the dragon's and the buddha's; person_scan has none).
 inline const std::vector<std::string>& MlsDatasets() {
-    static const std::vector<std::string> d = {"bunny", "bunny_scan", "bunny_scans_merged"};
+    static const std::vector<std::string> d = {"bunny",         "bunny_scan",  "bunny_scan_045",
+                                               "bunny_scans_merged", "dragon_scan", "buddha_scan"};
     return d;
 }
 inline const std::vector<std::string>& SimplifyDatasets() {

@@ -34,7 +34,9 @@ void Normals(benchmark::State& state, const std::string& d) {
 // MLS support (issue 19.5): theta(d) = exp(-d^2 / h^2) over the neighbours within cutoff x h.
 // mls_project: the defaults (h = 2 x median spacing, cutoff 3); mls_project_c<C>: cutoff C / 10
 // (fewer neighbours, the weights beyond are below exp(-C^2/100)). SURFEL_BENCH_MLS_H (a multiple
-// of the default h) and SURFEL_BENCH_MLS_CUTOFF override the first row for sweeps.
+// of the default h) and SURFEL_BENCH_MLS_CUTOFF override the first row for sweeps;
+// SURFEL_BENCH_MLS_MIN_NEIGHBORS sets min_neighbors (PCL projects a point with 3 or more
+// neighbours within its radius, itself included; Surfel's default asks for 4).
 void Mls(benchmark::State& state, const std::string& d, float cutoff) {
     const PointCloud& c = Dataset(d);
     MlsSurface::Batch b;
@@ -42,12 +44,17 @@ void Mls(benchmark::State& state, const std::string& d, float cutoff) {
     float h_scale = 1.0f;
     if (const char* e = std::getenv("SURFEL_BENCH_MLS_H")) h_scale = float(std::atof(e));
     if (const char* e = std::getenv("SURFEL_BENCH_MLS_CUTOFF"); e && cutoff == 3.0f) cutoff = float(std::atof(e));
+    // A given scale (h_scale != 1) is worked out before the timed loop, as the PCL rows' radius
+    // is (bench_peer_pcl.cpp): each side is handed its parameter. The default rows time the
+    // spacing rule (MedianSpacing over the kd-tree), a step PCL has no counterpart for.
+    const float given_h = h_scale != 1.0f ? h_scale * 2.0f * MedianSpacing(KdTree(c.positions)) : 0.0f;
     for (auto _ : state) {
         const KdTree tree(c.positions);
         MlsOptions o;
         o.degree = 2;
         o.cutoff = cutoff;
-        if (h_scale != 1.0f) o.h = h_scale * 2.0f * MedianSpacing(tree);
+        if (const char* e = std::getenv("SURFEL_BENCH_MLS_MIN_NEIGHBORS")) o.min_neighbors = std::atoi(e);
+        o.h = given_h;
         const MlsSurface mls(c, tree, o);
         h = mls.h();
         b = mls.ProjectAll(c.positions);

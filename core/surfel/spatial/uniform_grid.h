@@ -121,6 +121,33 @@ public:
     /// True when the dense layout was chosen (for tests and diagnostics).
     bool dense() const { return dense_; }
 
+    /// Dense layout only: the cell (x, y, z) the constructor put p in (the same float
+    /// arithmetic, clamped to the grid), for a finite p.
+    void DenseCellOf(const Vec3f& p, int at[3]) const {
+        const float inv = 1.0f / cell_;
+        for (int a = 0; a < 3; ++a)
+            at[a] = std::clamp(static_cast<int>(std::floor((p[a] - origin_[a]) * inv)), 0, dims_[a] - 1);
+    }
+    /// Dense layout only: calls fn(first, last) for the runs of the cell-sorted points that make
+    /// up the 3 x 3 x 3 block of cells around cell `at` (clipped to the grid): 9 z-runs at most,
+    /// in ascending order, so the block's points come in the order a query walk visits them.
+    template <typename Fn>
+    void ForEachBlockRun(const int at[3], Fn&& fn) const {
+        const int nx = dims_[0], ny = dims_[1], nz = dims_[2];
+        const int z0 = std::max(0, at[2] - 1), z1 = std::min(nz - 1, at[2] + 1);
+        for (int bx = std::max(0, at[0] - 1); bx <= std::min(nx - 1, at[0] + 1); ++bx)
+            for (int by = std::max(0, at[1] - 1); by <= std::min(ny - 1, at[1] + 1); ++by) {
+                const std::size_t column = (static_cast<std::size_t>(bx) * ny + by) * nz;
+                const std::uint32_t first = starts_[column + z0], last = starts_[column + z1 + 1];
+                if (first < last) fn(first, last);
+            }
+    }
+    /// Dense layout only: how far the 3 x 3 x 3 block around cell `at` reaches from p (a point
+    /// of that cell) on every side that has a neighbour cell, less a hair (1e-4 x cell: cell
+    /// assignment and these bounds round differently). A ball around p no larger than this
+    /// holds no point outside the block.
+    float BlockReach(const Vec3f& p, const int at[3]) const;
+
 private:
     // floor(v) as a cell index, saturated (far or non-finite queries must not overflow the cast).
     static int Cell(float v) {
@@ -156,10 +183,6 @@ private:
     // first); returns where the cell's own points start among them.
     std::size_t GatherBlock(int x, int y, int z, std::vector<float>& cx, std::vector<float>& cy,
                             std::vector<float>& cz, std::vector<std::uint32_t>* ids) const;
-    // How far the block around cell `at` reaches from p, a point of that cell, on every side
-    // that has a neighbour cell (a side at the grid's edge has no points beyond it), less a hair:
-    // cell assignment and these bounds round differently.
-    float BlockReach(const Vec3f& p, const int at[3]) const;
 
     void BuildDense(std::span<const Vec3f> points);
     void BuildSparse(std::span<const Vec3f> points);

@@ -11,7 +11,7 @@
 
 #include <cmath>
 #include <limits>
-#include <utility>
+#include <utility>  // std::swap, std::integer_sequence
 
 namespace surfel {
 
@@ -59,7 +59,8 @@ inline bool SolveLdlt6(const double* A, const double* b, double* x, double* d) {
     int transposition[6];
     bool ok = true, found_zero = false;
     double temp[6];
-    for (int k = 0; k < 6; ++k) {
+    // One step of the factorisation per column k, k a constant (the loops inside unroll).
+    const auto step = [&]<int k>() -> bool {
         // The largest remaining diagonal element (the first of equals) moves to k.
         int big = k;
         double biggest = std::abs(m[k][k]);
@@ -76,7 +77,7 @@ inline bool SolveLdlt6(const double* A, const double* b, double* x, double* d) {
                 m[i][big] = t;
             }
         }
-        if (k > 0) {
+        if constexpr (k > 0) {
             for (int j = 0; j < k; ++j) temp[j] = m[j][j] * m[j][k];
             double s = m[0][k] * temp[0];
             for (int j = 1; j < k; ++j) s = s + m[j][k] * temp[j];
@@ -93,7 +94,7 @@ inline bool SolveLdlt6(const double* A, const double* b, double* x, double* d) {
             for (int j = 0; j < 6; ++j) d[j] = m[j][j];
             return false;
         }
-        if (k < 5) {
+        if constexpr (k < 5) {
             if (valid)
                 for (int i = k + 1; i < 6; ++i) m[k][i] /= akk;
             else
@@ -101,7 +102,12 @@ inline bool SolveLdlt6(const double* A, const double* b, double* x, double* d) {
         }
         if (found_zero && valid) ok = false;
         else if (!valid) found_zero = true;
-    }
+        return true;
+    };
+    const bool nonzero = [&]<int... K>(std::integer_sequence<int, K...>) {
+        return (step.template operator()<K>() && ...);
+    }(std::make_integer_sequence<int, 6>{});
+    if (!nonzero) return false;  // an all-zero diagonal: d was written
     for (int j = 0; j < 6; ++j) d[j] = m[j][j];
     if (!ok) return false;
     double y[6];

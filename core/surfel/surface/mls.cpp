@@ -60,6 +60,47 @@ FitStats ComputeFitStats(const NeighborBatch& nb, int degree, double h, const Po
     return st;
 }
 
+// The eigenvector of the smallest eigenvalue of the symmetric 3x3 matrix `mat` (lower triangle
+// read), to the bit as Eigen::SelfAdjointEigenSolver<Matrix3d>::computeDirect(mat)
+// .eigenvectors().col(0): Eigen 3.4's direct_selfadjoint_eigenvalues<., 3, false>::run step for
+// step, with its own computeRoots and extract_kernel, less what col(0) does not need (the other
+// eigenvectors where col(0) is found first, the eigenvalues' rescaling). The reference plane's
+// normal (one per iteration per projection) spent a third of its solve there.
+Vec3d SmallestEigenvector(const Eigen::Matrix3d& mat) {
+    using Direct = Eigen::internal::direct_selfadjoint_eigenvalues<Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d>, 3, false>;
+    const double eps = Eigen::NumTraits<double>::epsilon();
+    // Shifted to the mean eigenvalue and scaled into [-1, 1], as Eigen does.
+    const double shift = mat.trace() / 3.0;
+    Eigen::Matrix3d scaled = mat.selfadjointView<Eigen::Lower>();
+    scaled.diagonal().array() -= shift;
+    const double scale = scaled.cwiseAbs().maxCoeff();
+    if (scale > 0) scaled /= scale;
+    Vec3d eivals;
+    Direct::computeRoots(scaled, eivals);
+    if ((eivals(2) - eivals(0)) <= eps) return Vec3d::UnitX();  // Eigen: the identity
+    Eigen::Matrix3d eivecs, tmp = scaled;
+    double d0 = eivals(2) - eivals(1);
+    const double d1 = eivals(1) - eivals(0);
+    if (d0 > d1) {  // the largest eigenvalue is the most distinct: its vector first (k = 2, l = 0)
+        d0 = d1;
+        tmp.diagonal().array() -= eivals(2);
+        Direct::extract_kernel(tmp, eivecs.col(2), eivecs.col(0));
+        if (d0 <= 2 * eps * d1) {
+            eivecs.col(0) -= eivecs.col(2).dot(eivecs.col(0)) * eivecs.col(0);
+            eivecs.col(0).normalize();
+        } else {
+            tmp = scaled;
+            tmp.diagonal().array() -= eivals(0);
+            Vec3d dummy;
+            Direct::extract_kernel(tmp, eivecs.col(0), dummy);
+        }
+    } else {  // the smallest is (k = 0): Eigen's next two vectors leave col(0) alone
+        tmp.diagonal().array() -= eivals(0);
+        Direct::extract_kernel(tmp, eivecs.col(0), eivecs.col(2));
+    }
+    return eivecs.col(0);
+}
+
 // The points within `reach` of a centre c, in the grid's cell order, as structure of arrays: a
 // per-thread superset of the neighbourhoods of the next projections (the render's, aa_surface.cpp).
 // ProjectAll visits its points in a spatial order, so a gather within `radius` of x whose ball
@@ -76,8 +117,12 @@ struct Superset {
     std::vector<float> d2;            // scratch: squared distances to the current gather's origin
     std::vector<std::uint32_t> keep;  // scratch: positions of the accepted points
     std::size_t n = 0;
+    int at[3] = {0, 0, 0};            // FillBlock's cell
 };
 thread_local Superset tls_superset;
+// ProjectAll over the cloud's own points: the 3 x 3 x 3 block of grid cells around the current
+// query's cell (FillBlock), per thread.
+thread_local Superset tls_block;
 std::atomic<std::uint64_t> next_surface_id{1};
 
 // How far (in units of h) the superset reaches beyond the gather that filled it, and the cell
@@ -120,6 +165,38 @@ void FillSuperset(const UniformGrid& grid, std::uint64_t owner, const Vec3f& c, 
     });
     s.c = c;
     s.reach = reach;
+    s.owner = owner;
+}
+
+// Fills `s` with the points of the 3 x 3 x 3 block of cells around cell `at` (dense grid only),
+// in ascending cell order: a superset of the ball within cell() of any point of cell `at` that
+// lies at least a hair inside its cell (UniformGrid::BlockReach). ProjectAll over the cloud's own
+// points visits them cell by cell (the grid's order), so each thread fills one block per cell.
+void FillBlock(const UniformGrid& grid, std::uint64_t owner, const int at[3], Superset& s) {
+    s.owner = 0;
+    s.n = 0;
+    const Vec3f* pts = grid.sorted_points();
+    const std::uint32_t* idx = grid.sorted_indices();
+    grid.ForEachBlockRun(at, [&](std::uint32_t first, std::uint32_t last) {
+        const std::size_t need = s.n + (last - first);
+        if (need > s.index.size()) {
+            const std::size_t cap = std::max<std::size_t>(1024, 2 * need);
+            for (auto* v : {&s.x, &s.y, &s.z, &s.d2}) v->resize(cap);
+            s.index.resize(cap);
+            s.keep.resize(cap);
+        }
+        std::size_t n = s.n;
+        float *X = s.x.data(), *Y = s.y.data(), *Z = s.z.data();
+        std::uint32_t* I = s.index.data();
+        for (std::uint32_t j = first; j < last; ++j, ++n) {
+            X[n] = pts[j].x();
+            Y[n] = pts[j].y();
+            Z[n] = pts[j].z();
+            I[n] = idx[j];
+        }
+        s.n = n;
+    });
+    for (int a = 0; a < 3; ++a) s.at[a] = at[a];
     s.owner = owner;
 }
 
@@ -187,6 +264,28 @@ struct MlsSurface::Impl {
         // Covered when |o - c| + radius <= reach, less a hair for the rounding of these floats.
         if (!(s.owner == id && (o - s.c).norm() + radius <= s.reach * (1.0f - 1e-4f)))
             FillSuperset(*grid, id, o, radius + kSupersetMargin * h, s);
+        FilterSuperset(s, o, radius, nb);
+    }
+
+    // The gather within `radius` of o, one of the cloud's points, in grid cell `at` (ProjectAll
+    // over the cloud's own points), from the thread's block of the 3 x 3 x 3 cells around `at`:
+    // the same points in the same order as the grid walk when the block holds the ball
+    // (BlockReach); false (nothing gathered) for the few points within a hair of their cell's
+    // faces, which walk the grid.
+    bool GatherFromBlock(const Vec3f& o, float radius, const int at[3], NeighborBatch& nb) const {
+        nb.clear();
+        if (!(grid->BlockReach(o, at) >= radius)) return false;
+        Superset& s = tls_block;
+        if (!(s.owner == id && s.at[0] == at[0] && s.at[1] == at[1] && s.at[2] == at[2]))
+            FillBlock(*grid, id, at, s);
+        FilterSuperset(s, o, radius, nb);
+        return true;
+    }
+
+    // The points of `s` within `radius` of o (PushWithin's float test), relative to o, in the
+    // order of `s`: the squared distances (x^2 + (y^2 + z^2), PushWithin's squaredNorm,
+    // vectorised), the accepted positions (a branch-free compaction), then the accepted offsets.
+    void FilterSuperset(Superset& s, const Vec3f& o, float radius, NeighborBatch& nb) const {
         const std::size_t m = s.n;
         const float r2 = radius * radius;
         const float ox = o.x(), oy = o.y(), oz = o.z();
@@ -241,15 +340,19 @@ struct MlsSurface::Impl {
     // `superset`: gather through the thread's superset (ProjectAll, whose visiting order keeps
     // consecutive points close); lone projections (booleans, patches) walk the grid, where a
     // refill at radius + 2h would cost more than it saves.
+    // `block_at`: xf is one of the cloud's points and lies in that grid cell (ProjectAll over
+    // the cloud's own points); gather through the thread's block of cells around it.
     std::optional<MlsPoint> Project(const Vec3f& xf, std::vector<Neighbor>& nbrs, FitStats* stats = nullptr,
-                                    MlsPatch* patch = nullptr, bool superset = false) const {
+                                    MlsPatch* patch = nullptr, bool superset = false,
+                                    const int* block_at = nullptr) const {
         const float h = LocalH(xf, nbrs);
         const Vec3d x = xf.cast<double>();
         // Neighbours relative to x (small, well-conditioned numbers), as arrays for the
         // vectorised kernels.
         thread_local NeighborBatch nb;
         nb.clear();
-        if (superset && grid && grid->dense()) {
+        if (block_at && GatherFromBlock(xf, opt.cutoff * h, block_at, nb)) {
+        } else if (superset && grid && grid->dense()) {
             GatherFromSuperset(xf, opt.cutoff * h, h, nb);
         } else if (grid) {
             const float radius = opt.cutoff * h;
@@ -279,9 +382,7 @@ struct MlsSurface::Impl {
             const Vec3d c = Vec3d(wm.x, wm.y, wm.z) / wm.w;
             Eigen::Matrix3d C = wm.Second();
             C -= wm.w * c * c.transpose();
-            Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es;
-            es.computeDirect(C);
-            Vec3d nn = es.eigenvectors().col(0).normalized();
+            Vec3d nn = SmallestEigenvector(C).normalized();  // computeDirect(C)'s col(0), to the bit
             if (it > 0 && nn.dot(n) < 0) nn = -nn;
             n = nn;
             // The foot of x on the plane through c with normal n: x - ((x - c) . n) n, relative to x.
@@ -481,24 +582,45 @@ MlsSurface::Batch MlsSurface::ProjectAll(std::span<const Vec3f> points, const Pr
     std::vector<std::uint8_t> ok(n, 0);
     std::vector<std::uint16_t> iters(n, 0);
     ProgressTracker tracker(progress, static_cast<double>(n), "MLS projection");
-    const std::vector<std::uint32_t> order = impl_->VisitOrder(points);
-    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 1024), [&](const tbb::blocked_range<std::size_t>& r) {
-        std::vector<Neighbor> buf;
-        for (std::size_t k = r.begin(); k != r.end(); ++k) {
-            const std::size_t i = order[k];
-            auto p = impl_->Project(points[i], buf, nullptr, nullptr, /*superset=*/true);
-            if (p) {
-                b.positions[i] = p->position;
-                b.normals[i] = p->normal;
-                ok[i] = 1;
-                iters[i] = static_cast<std::uint16_t>(p->iterations);
-            } else {
-                b.positions[i] = points[i];
-                b.normals[i] = Vec3f::Zero();
-            }
+    const auto store = [&](std::size_t i, const std::optional<MlsPoint>& p) {
+        if (p) {
+            b.positions[i] = p->position;
+            b.normals[i] = p->normal;
+            ok[i] = 1;
+            iters[i] = static_cast<std::uint16_t>(p->iterations);
+        } else {
+            b.positions[i] = points[i];
+            b.normals[i] = Vec3f::Zero();
         }
-        tracker.Advance(static_cast<double>(r.size()));
-    });
+    };
+    const UniformGrid* grid = impl_->grid.get();
+    if (grid && grid->dense() && points.data() == impl_->cloud.positions.data() && n == impl_->cloud.size()) {
+        // The cloud's own points (`surfel project`, resampling's final pass): visited in the
+        // grid's cell order, each thread's gathers in a cell filtered from one block of the
+        // 3 x 3 x 3 cells around it (no visiting order to sort, one fill per cell).
+        const Vec3f* sorted = grid->sorted_points();
+        const std::uint32_t* sorted_index = grid->sorted_indices();
+        tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 1024), [&](const tbb::blocked_range<std::size_t>& r) {
+            std::vector<Neighbor> buf;
+            for (std::size_t k = r.begin(); k != r.end(); ++k) {
+                int at[3];
+                grid->DenseCellOf(sorted[k], at);
+                const std::size_t i = sorted_index[k];
+                store(i, impl_->Project(points[i], buf, nullptr, nullptr, /*superset=*/true, at));
+            }
+            tracker.Advance(static_cast<double>(r.size()));
+        });
+    } else {
+        const std::vector<std::uint32_t> order = impl_->VisitOrder(points);
+        tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 1024), [&](const tbb::blocked_range<std::size_t>& r) {
+            std::vector<Neighbor> buf;
+            for (std::size_t k = r.begin(); k != r.end(); ++k) {
+                const std::size_t i = order[k];
+                store(i, impl_->Project(points[i], buf, nullptr, nullptr, /*superset=*/true));
+            }
+            tracker.Advance(static_cast<double>(r.size()));
+        });
+    }
     double it_sum = 0;
     for (std::size_t i = 0; i < n; ++i) {
         if (!ok[i]) ++b.failed;

@@ -233,5 +233,37 @@ TEST(Mls, ProjectAllGivesEachPointsOwnProjectionToTheBit) {
     EXPECT_GT(projected, queries.size() * 9 / 10);
 }
 
+// ProjectAll over the cloud's own points visits them in the grid's cell order and gathers from
+// a per-thread block of 3 x 3 x 3 cells: the same bits as a lone Project (the grid walk), at the
+// default support and at small ones (few neighbours, many points near their cell's faces).
+TEST(Mls, ProjectAllOverTheCloudsOwnPointsGivesEachPointsOwnProjectionToTheBit) {
+    ShapeOptions so;
+    so.points = 6000;
+    so.noise = 0.005;
+    const PointCloud c = SampleShape(Shape::kTorus, so);
+    KdTree tree(c.positions);
+    for (const auto& [h_scale, cutoff] : {std::pair{1.0f, 3.0f}, std::pair{1.0f, 1.5f}, std::pair{0.5f, 2.0f}}) {
+        MlsOptions o;
+        o.h = h_scale * 2.0f * MedianSpacing(tree);
+        o.cutoff = cutoff;
+        const MlsSurface mls(c, tree, o);
+        const auto b = mls.ProjectAll(c.positions);
+        ASSERT_EQ(b.positions.size(), c.size());
+        std::size_t projected = 0;
+        for (std::size_t i = 0; i < c.size(); ++i) {
+            const auto p = mls.Project(c.positions[i]);
+            ASSERT_EQ(p.has_value(), b.normals[i] != Vec3f::Zero()) << i << " cutoff " << cutoff;
+            if (!p) {
+                ASSERT_EQ(b.positions[i], c.positions[i]) << i;
+                continue;
+            }
+            ++projected;
+            ASSERT_EQ(p->position, b.positions[i]) << i << " cutoff " << cutoff;
+            ASSERT_EQ(p->normal, b.normals[i]) << i << " cutoff " << cutoff;
+        }
+        EXPECT_GT(projected, c.size() * 9 / 10) << "cutoff " << cutoff;
+    }
+}
+
 }  // namespace
 }  // namespace surfel
