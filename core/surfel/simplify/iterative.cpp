@@ -19,9 +19,12 @@
 #include <algorithm>
 #include <atomic>
 #include <cmath>
+#include <cstdlib>
 #include <limits>
 #include <memory>
 #include <utility>
+
+#include <sys/mman.h>
 
 #include "surfel/base/error.h"
 #include "surfel/simplify/simplify_internal.h"
@@ -33,6 +36,9 @@ namespace {
 /// std::allocator whose value-less construct leaves trivially constructible elements as they are:
 /// the large arrays below are first written in parallel loops, which then also take their page
 /// faults (session 12: zero-filling them, and the pool's copy into its reserve, ran on one core).
+/// Arrays of 2 MiB and more are placed on 2 MiB boundaries and offered to the kernel for huge
+/// pages (session 13: with 4 KiB pages nearly every scattered access of the contraction loop, over
+/// ~200 MB, also missed the TLB; transparent huge pages are often granted only on request).
 template <class T>
 struct NoInit : std::allocator<T> {
     using value_type = T;
@@ -43,6 +49,22 @@ struct NoInit : std::allocator<T> {
     NoInit() = default;
     template <class U>
     NoInit(const NoInit<U>&) noexcept {}
+    static constexpr std::size_t kHuge = std::size_t{2} << 20;
+    T* allocate(std::size_t count) {
+        const std::size_t bytes = count * sizeof(T);
+        if (bytes < kHuge) return std::allocator<T>::allocate(count);
+        const std::size_t rounded = (bytes + kHuge - 1) / kHuge * kHuge;
+        void* p = std::aligned_alloc(kHuge, rounded);
+        if (!p) throw std::bad_alloc();
+#ifdef MADV_HUGEPAGE
+        madvise(p, rounded, MADV_HUGEPAGE);  // advice only: without it the pages are 4 KiB
+#endif
+        return static_cast<T*>(p);
+    }
+    void deallocate(T* p, std::size_t count) noexcept {
+        if (count * sizeof(T) < kHuge) std::allocator<T>::deallocate(p, count);
+        else std::free(p);
+    }
     template <class U>
     void construct(U* p) noexcept {
         ::new (static_cast<void*>(p)) U;
@@ -52,6 +74,12 @@ struct NoInit : std::allocator<T> {
         ::new (static_cast<void*>(p)) U(std::forward<Args>(args)...);
     }
 };
+template <class T>
+bool operator==(const NoInit<T>&, const NoInit<T>&) noexcept { return true; }
+
+/// The large arrays of the contraction loop.
+template <class T>
+using BigVector = std::vector<T, NoInit<T>>;
 
 /// Sum of squared distances to a set of planes n.x = d: x^T A x - 2 b^T x + c, with A symmetric
 /// (a00 a01 a02 a11 a12 a22). Quadric{} is the zero quadric (no member initialisers: a node's
@@ -264,10 +292,10 @@ private:
         pos_[s.node] = i;
     }
     std::span<const PairKey> key_;
-    std::vector<Slot> storage_;
+    BigVector<Slot> storage_;
     Slot* heap_ = nullptr;
     std::uint32_t size_ = 0;
-    std::vector<std::uint32_t> pos_;
+    BigVector<std::uint32_t> pos_;
 };
 
 /// A spatial order of the points (Morton order of a 1024^3 grid over the bounding box, ties by
@@ -326,15 +354,15 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
     // index, and each sum is taken in the same order as over the input numbering, so the result
     // is the one of the input order, to the bit.
     const std::vector<std::uint32_t> input_of = SpatialOrder(points);
-    std::vector<std::uint32_t> at(n);  // input index -> position
+    BigVector<std::uint32_t> at(n);  // input index -> position
     for (std::uint32_t i = 0; i < n; ++i) at[input_of[i]] = i;
 
     // Symmetric neighbour graph, each row sorted by input index and without repeats. Built in
     // parallel: counts and slots by atomic increments (the order within a row depends on the
     // threads, its sorted contents do not).
     std::vector<std::uint32_t> first(n + 1, 0);
-    std::vector<Node, NoInit<Node>> node(n);  // filled below, in parallel
-    std::vector<std::uint32_t, NoInit<std::uint32_t>> graph_storage;
+    BigVector<Node> node(n);  // filled below, in parallel
+    BigVector<std::uint32_t> graph_storage;
     {
         std::vector<std::atomic<std::uint32_t>> count(n);
         tbb::parallel_for(tbb::blocked_range<std::uint32_t>(0, static_cast<std::uint32_t>(n), 4096),
@@ -417,7 +445,7 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
     // The pool: a node's entries at [start, start + degree), room for `capacity`; a node whose list
     // outgrows its room moves to the end of the pool.
     // Every entry is written by the loop below (the room a list leaves behind is never read).
-    std::vector<Entry, NoInit<Entry>> pool;
+    BigVector<Entry> pool;
     pool.reserve(static_cast<std::size_t>(first[n]) * 2);
     pool.resize(static_cast<std::size_t>(first[n]));
     // Every pair's cost, evaluated once from its lower end (by input index).
@@ -450,7 +478,7 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
     progress.Advance(0.1);
 
     // Each node's best pair and the heap over them.
-    std::vector<PairKey> best(n);
+    BigVector<PairKey> best(n);
     auto rescan = [&](std::uint32_t u, std::uint32_t self) {  // self = input_of[u]
         PairKey b;
         for (std::uint32_t e = node[u].row.start; e < node[u].row.start + node[u].row.degree; ++e) {
@@ -487,8 +515,8 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
         heap.Update(w);
     };
 
-    std::vector<char> alive(n, 1);
-    std::vector<std::uint32_t> parent(n);
+    BigVector<char> alive(n, 1);
+    BigVector<std::uint32_t> parent(n);
     std::vector<Entry> merged;  // cost unused
     for (std::uint32_t i = 0; i < n; ++i) parent[i] = i;
     std::uint32_t epoch = 0;
