@@ -3,8 +3,9 @@
 // pair contracted first.
 //
 // Layout (docs/simplification.md, "Iterative"): the graph lives in one pool of adjacency entries
-// (neighbour, cost of the pair), a node's entries contiguous; every node keeps its cheapest pair,
-// and an indexed 4-ary heap of the nodes orders those. A contraction re-evaluates the survivor's
+// (neighbour, cost of the pair), a node's entries contiguous; every node keeps its cheapest pair
+// among those whose lower end (by input index) it is, and an indexed 4-ary heap of the nodes
+// orders those. A contraction re-evaluates the survivor's
 // pairs once each (both entries of a pair hold the same cost) and repairs the best pair of the
 // nodes it touched; nothing stale ever enters the heap. The order of contractions is the one of a
 // priority queue of all pairs by (cost, lower index, higher index): the same result as the lazy
@@ -193,9 +194,6 @@ struct PairKey {
         return hi < o.hi;
     }
 };
-PairKey KeyOf(double cost, std::uint32_t u, std::uint32_t v) {
-    return u < v ? PairKey{cost, u, v} : PairKey{cost, v, u};
-}
 
 /// A 4-ary min-heap of nodes by their best pair's key, with each node's position, so a key can
 /// move either way. A slot holds the cost and the lower index (16 bytes: a node's four children
@@ -257,7 +255,7 @@ private:
         if (a.lo != b.lo) return a.lo < b.lo;
         const std::uint32_t ha = key_[a.node].hi, hb = key_[b.node].hi;
         if (ha != hb) return ha < hb;
-        return a.node < b.node;  // the two ends of one pair share a key
+        return a.node < b.node;  // (each pair is held at one end: two slots never share a key)
     }
     void Up(std::uint32_t i, const Slot& s) {
         while (i > 0) {
@@ -477,12 +475,17 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
     });
     progress.Advance(0.1);
 
-    // Each node's best pair and the heap over them.
+    // Each node's best pair among those whose lower end (by input index) it is, and the heap over
+    // them: every pair is in the heap once, at its lower end, so the top is still the least pair
+    // by (cost, lower index, higher index), and a contraction repairs the best pair of only those
+    // neighbours that are the lower end of a pair it changed (session 13: with each pair at both
+    // ends, twice as many heap updates).
     BigVector<PairKey> best(n);
     auto rescan = [&](std::uint32_t u, std::uint32_t self) {  // self = input_of[u]
         PairKey b;
         for (std::uint32_t e = node[u].row.start; e < node[u].row.start + node[u].row.degree; ++e) {
-            const PairKey key = KeyOf(pool[e].cost, self, pool[e].input);
+            if (pool[e].input < self) continue;
+            const PairKey key{pool[e].cost, self, pool[e].input};
             if (key < b) b = key;
         }
         best[u] = b;
@@ -500,18 +503,24 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
     };
     // Sets the cost of pair (u, w) at w's end and repairs w's best pair; `gone` (an input index)
     // is a node that may just have left w's list (w's best may have been the pair with it). iw,
-    // iu: the input indices of w and u.
+    // iu: the input indices of w and u. Where u is the pair's lower end, u's own rescan after the
+    // contraction takes the pair into account.
     auto set_cost_at = [&](std::uint32_t w, std::uint32_t iw, std::uint32_t u, std::uint32_t iu, double cost,
                            std::uint32_t gone) {
         Entry* e = entry_of(w, u);
         SURFEL_CHECK(e != nullptr, "pair " << iu << "-" << iw << " missing at " << iw);
         e->cost = cost;
-        const PairKey key = KeyOf(cost, iu, iw);
-        const bool was_best = best[w].lo == key.lo && best[w].hi == key.hi;
-        const bool lost_best = gone != kNone && (best[w].lo == gone || best[w].hi == gone);
-        if (was_best || lost_best) rescan(w, iw);
-        else if (key < best[w]) best[w] = key;
-        else return;
+        const bool lost_best = gone != kNone && best[w].hi == gone;
+        if (iw < iu) {
+            const PairKey key{cost, iw, iu};
+            if (best[w].hi == iu || lost_best) rescan(w, iw);
+            else if (key < best[w]) best[w] = key;
+            else return;
+        } else if (lost_best) {
+            rescan(w, iw);
+        } else {
+            return;
+        }
         heap.Update(w);
     };
 
@@ -577,7 +586,7 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
             continue;
         }
         // Contract the best pair: v (the higher input index) into u.
-        const std::uint32_t u = at[best[top].lo], v = at[best[top].hi];
+        const std::uint32_t u = top, v = at[best[top].hi];  // the pair's lower end holds it
         const std::uint32_t u_input = best[top].lo, v_input = best[top].hi;
         // The loop waits on memory (each pair touches rows, quadrics and keys scattered over the
         // pool): ask for all of a contraction's lines at once, in two waves (a list's place, then
