@@ -6,7 +6,7 @@
 // (neighbour, cost of the pair), a node's entries contiguous; every node keeps its cheapest pair
 // among those whose lower end (by input index) it is, and an indexed 4-ary heap of the nodes
 // orders those. A contraction re-evaluates the survivor's
-// pairs once each (both entries of a pair hold the same cost) and repairs the best pair of the
+// pairs once each (the entry at the pair's lower end holds its cost) and repairs the best pair of the
 // nodes it touched; nothing stale ever enters the heap. The order of contractions is the one of a
 // priority queue of all pairs by (cost, lower index, higher index): the same result as the lazy
 // queue of the first version, several times faster. The points are kept in Morton order, every
@@ -459,20 +459,8 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
         }
     });
     decltype(graph_storage)().swap(graph);
-    // ... and copied to the higher end (rows are still sorted by input index here).
-    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 1024), [&](const tbb::blocked_range<std::size_t>& r) {
-        for (std::size_t i = r.begin(); i != r.end(); ++i) {
-            const std::uint32_t self = input_of[i];
-            for (std::uint32_t e = node[i].row.start; e < node[i].row.start + node[i].row.degree; ++e) {
-                if (pool[e].input > self) continue;
-                const std::uint32_t j = pool[e].id;
-                const Entry* b = pool.data() + node[j].row.start;
-                const Entry* hit = std::lower_bound(b, b + node[j].row.degree, self,
-                                                    [](const Entry& x, std::uint32_t id) { return x.input < id; });
-                pool[e].cost = hit->cost;
-            }
-        }
-    });
+    // Only the lower end's entry holds the cost: a node's best pair is among its pairs to higher
+    // indices, and nothing else reads a cost (the higher end's entry keeps kNever).
     progress.Advance(0.1);
 
     // Each node's best pair among those whose lower end (by input index) it is, and the heap over
@@ -506,17 +494,17 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
             if (pool[e].id == id) return &pool[e];
         return nullptr;
     };
-    // Sets the cost of pair (u, w) at w's end and repairs w's best pair; `gone` (an input index)
-    // is a node that may just have left w's list (w's best may have been the pair with it). iw,
-    // iu: the input indices of w and u. Where u is the pair's lower end, u's own rescan after the
-    // contraction takes the pair into account.
+    // Sets the cost of pair (u, w) at w's end where w is its lower end, and repairs w's best pair;
+    // `gone` (an input index) is a node that may just have left w's list (w's best may have been
+    // the pair with it). iw, iu: the input indices of w and u. Where u is the pair's lower end,
+    // u's own list holds the cost and its rescan after the contraction takes the pair into account.
     auto set_cost_at = [&](std::uint32_t w, std::uint32_t iw, std::uint32_t u, std::uint32_t iu, double cost,
                            std::uint32_t gone) {
-        Entry* e = entry_of(w, u);
-        SURFEL_CHECK(e != nullptr, "pair " << iu << "-" << iw << " missing at " << iw);
-        e->cost = cost;
         const bool lost_best = gone != kNone && best[w].hi == gone;
         if (iw < iu) {
+            Entry* e = entry_of(w, u);
+            SURFEL_CHECK(e != nullptr, "pair " << iu << "-" << iw << " missing at " << iw);
+            e->cost = cost;
             const PairKey key{cost, iw, iu};
             if (best[w].hi == iu || lost_best) rescan(w, iw);
             else if (key < best[w]) best[w] = key, mate[w] = u;
@@ -576,11 +564,8 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
             for (std::uint32_t a = 0; a < live.size(); ++a) {
                 const std::uint32_t u = ids[a];
                 for (std::uint32_t e = node[u].row.start; e < node[u].row.start + node[u].row.degree; ++e) {
-                    const std::uint32_t w = pool[e].id;
-                    if (pool[e].input > input_of[u]) {
-                        pool[e].cost = cost_of(u, w, input_of[u], pool[e].input);
-                        entry_of(w, u)->cost = pool[e].cost;
-                    }
+                    if (pool[e].input > input_of[u])  // held at the lower end only
+                        pool[e].cost = cost_of(u, pool[e].id, input_of[u], pool[e].input);
                 }
             }
             for (const std::uint32_t u : ids) {
