@@ -102,7 +102,7 @@ void UniformGrid::BuildSparse(std::span<const Vec3f> points) {
 namespace {
 // The first threshold of a point's k-nearest search, on the previous point's squared k-th distance
 // (1.2x the distance): when k candidates lie within it, the others need not be ranked (session 13:
-// the triangle-inequality bound alone kept ~60 candidates a point for k = 16, this ~25).
+// the triangle-inequality bound alone keeps ~60 candidates a point for k = 16 on the merged scans).
 constexpr float kGuess = 1.44f;
 
 // Squared distances from p to m candidates held as coordinate columns: dx * dx + dy * dy + dz * dz
