@@ -6,9 +6,9 @@
 // (neighbour, cost of the pair), a node's entries contiguous; every node keeps its cheapest pair
 // among those whose lower end (by input index) it is, and an indexed 4-ary heap of the nodes
 // orders those. A contraction re-evaluates the survivor's
-// pairs once each (the entry at the pair's lower end holds its cost) and repairs the best pair of the
-// nodes it touched; nothing stale ever enters the heap. The order of contractions is the one of a
-// priority queue of all pairs by (cost, lower index, higher index): the same result as the lazy
+// pairs once each (the entry at the pair's lower end holds its cost) and repairs the best pair of
+// the nodes it touched; nothing stale ever enters the heap. The order of contractions is the one of
+// a priority queue of all pairs by (cost, lower index, higher index): the same result as the lazy
 // queue of the first version, several times faster. The points are kept in Morton order, every
 // order and tie still by input index, and a contraction prefetches the lines it will touch
 // (session 11: the loop waits on memory, not on arithmetic).
