@@ -3,11 +3,12 @@
 // pair contracted first.
 //
 // Layout (docs/simplification.md, "Iterative"): the graph lives in one pool of adjacency entries
-// (neighbour, cost of the pair), a node's entries contiguous; every node keeps its cheapest pair,
-// and an indexed 4-ary heap of the nodes orders those. A contraction re-evaluates the survivor's
-// pairs once each (both entries of a pair hold the same cost) and repairs the best pair of the
-// nodes it touched; nothing stale ever enters the heap. The order of contractions is the one of a
-// priority queue of all pairs by (cost, lower index, higher index): the same result as the lazy
+// (neighbour, cost of the pair), a node's entries contiguous; every node keeps its cheapest pair
+// among those whose lower end (by input index) it is, and an indexed 4-ary heap of the nodes
+// orders those. A contraction re-evaluates the survivor's
+// pairs once each (the entry at the pair's lower end holds its cost) and repairs the best pair of
+// the nodes it touched; nothing stale ever enters the heap. The order of contractions is the one of
+// a priority queue of all pairs by (cost, lower index, higher index): the same result as the lazy
 // queue of the first version, several times faster. The points are kept in Morton order, every
 // order and tie still by input index, and a contraction prefetches the lines it will touch
 // (session 11: the loop waits on memory, not on arithmetic).
@@ -19,9 +20,12 @@
 #include <algorithm>
 #include <atomic>
 #include <cmath>
+#include <cstdlib>
 #include <limits>
 #include <memory>
 #include <utility>
+
+#include <sys/mman.h>
 
 #include "surfel/base/error.h"
 #include "surfel/simplify/simplify_internal.h"
@@ -33,6 +37,9 @@ namespace {
 /// std::allocator whose value-less construct leaves trivially constructible elements as they are:
 /// the large arrays below are first written in parallel loops, which then also take their page
 /// faults (session 12: zero-filling them, and the pool's copy into its reserve, ran on one core).
+/// Arrays of 2 MiB and more are placed on 2 MiB boundaries and offered to the kernel for huge
+/// pages (session 13: with 4 KiB pages nearly every scattered access of the contraction loop, over
+/// ~200 MB, also missed the TLB; transparent huge pages are often granted only on request).
 template <class T>
 struct NoInit : std::allocator<T> {
     using value_type = T;
@@ -43,6 +50,22 @@ struct NoInit : std::allocator<T> {
     NoInit() = default;
     template <class U>
     NoInit(const NoInit<U>&) noexcept {}
+    static constexpr std::size_t kHuge = std::size_t{2} << 20;
+    T* allocate(std::size_t count) {
+        const std::size_t bytes = count * sizeof(T);
+        if (bytes < kHuge) return std::allocator<T>::allocate(count);
+        const std::size_t rounded = (bytes + kHuge - 1) / kHuge * kHuge;
+        void* p = std::aligned_alloc(kHuge, rounded);
+        if (!p) throw std::bad_alloc();
+#ifdef MADV_HUGEPAGE
+        madvise(p, rounded, MADV_HUGEPAGE);  // advice only: without it the pages are 4 KiB
+#endif
+        return static_cast<T*>(p);
+    }
+    void deallocate(T* p, std::size_t count) noexcept {
+        if (count * sizeof(T) < kHuge) std::allocator<T>::deallocate(p, count);
+        else std::free(p);
+    }
     template <class U>
     void construct(U* p) noexcept {
         ::new (static_cast<void*>(p)) U;
@@ -52,6 +75,12 @@ struct NoInit : std::allocator<T> {
         ::new (static_cast<void*>(p)) U(std::forward<Args>(args)...);
     }
 };
+template <class T>
+bool operator==(const NoInit<T>&, const NoInit<T>&) noexcept { return true; }
+
+/// The large arrays of the contraction loop.
+template <class T>
+using BigVector = std::vector<T, NoInit<T>>;
 
 /// Sum of squared distances to a set of planes n.x = d: x^T A x - 2 b^T x + c, with A symmetric
 /// (a00 a01 a02 a11 a12 a22). Quadric{} is the zero quadric (no member initialisers: a node's
@@ -165,9 +194,6 @@ struct PairKey {
         return hi < o.hi;
     }
 };
-PairKey KeyOf(double cost, std::uint32_t u, std::uint32_t v) {
-    return u < v ? PairKey{cost, u, v} : PairKey{cost, v, u};
-}
 
 /// A 4-ary min-heap of nodes by their best pair's key, with each node's position, so a key can
 /// move either way. A slot holds the cost and the lower index (16 bytes: a node's four children
@@ -229,7 +255,7 @@ private:
         if (a.lo != b.lo) return a.lo < b.lo;
         const std::uint32_t ha = key_[a.node].hi, hb = key_[b.node].hi;
         if (ha != hb) return ha < hb;
-        return a.node < b.node;  // the two ends of one pair share a key
+        return a.node < b.node;  // (each pair is held at one end: two slots never share a key)
     }
     void Up(std::uint32_t i, const Slot& s) {
         while (i > 0) {
@@ -264,10 +290,10 @@ private:
         pos_[s.node] = i;
     }
     std::span<const PairKey> key_;
-    std::vector<Slot> storage_;
+    BigVector<Slot> storage_;
     Slot* heap_ = nullptr;
     std::uint32_t size_ = 0;
-    std::vector<std::uint32_t> pos_;
+    BigVector<std::uint32_t> pos_;
 };
 
 /// A spatial order of the points (Morton order of a 1024^3 grid over the bounding box, ties by
@@ -326,15 +352,15 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
     // index, and each sum is taken in the same order as over the input numbering, so the result
     // is the one of the input order, to the bit.
     const std::vector<std::uint32_t> input_of = SpatialOrder(points);
-    std::vector<std::uint32_t> at(n);  // input index -> position
+    BigVector<std::uint32_t> at(n);  // input index -> position
     for (std::uint32_t i = 0; i < n; ++i) at[input_of[i]] = i;
 
     // Symmetric neighbour graph, each row sorted by input index and without repeats. Built in
     // parallel: counts and slots by atomic increments (the order within a row depends on the
     // threads, its sorted contents do not).
     std::vector<std::uint32_t> first(n + 1, 0);
-    std::vector<Node, NoInit<Node>> node(n);  // filled below, in parallel
-    std::vector<std::uint32_t, NoInit<std::uint32_t>> graph_storage;
+    BigVector<Node> node(n);  // filled below, in parallel
+    BigVector<std::uint32_t> graph_storage;
     {
         std::vector<std::atomic<std::uint32_t>> count(n);
         tbb::parallel_for(tbb::blocked_range<std::uint32_t>(0, static_cast<std::uint32_t>(n), 4096),
@@ -417,7 +443,7 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
     // The pool: a node's entries at [start, start + degree), room for `capacity`; a node whose list
     // outgrows its room moves to the end of the pool.
     // Every entry is written by the loop below (the room a list leaves behind is never read).
-    std::vector<Entry, NoInit<Entry>> pool;
+    BigVector<Entry> pool;
     pool.reserve(static_cast<std::size_t>(first[n]) * 2);
     pool.resize(static_cast<std::size_t>(first[n]));
     // Every pair's cost, evaluated once from its lower end (by input index).
@@ -433,31 +459,29 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
         }
     });
     decltype(graph_storage)().swap(graph);
-    // ... and copied to the higher end (rows are still sorted by input index here).
-    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 1024), [&](const tbb::blocked_range<std::size_t>& r) {
-        for (std::size_t i = r.begin(); i != r.end(); ++i) {
-            const std::uint32_t self = input_of[i];
-            for (std::uint32_t e = node[i].row.start; e < node[i].row.start + node[i].row.degree; ++e) {
-                if (pool[e].input > self) continue;
-                const std::uint32_t j = pool[e].id;
-                const Entry* b = pool.data() + node[j].row.start;
-                const Entry* hit = std::lower_bound(b, b + node[j].row.degree, self,
-                                                    [](const Entry& x, std::uint32_t id) { return x.input < id; });
-                pool[e].cost = hit->cost;
-            }
-        }
-    });
+    // Only the lower end's entry holds the cost: a node's best pair is among its pairs to higher
+    // indices, and nothing else reads a cost (the higher end's entry keeps kNever).
     progress.Advance(0.1);
 
-    // Each node's best pair and the heap over them.
-    std::vector<PairKey> best(n);
+    // Each node's best pair among those whose lower end (by input index) it is, and the heap over
+    // them: every pair is in the heap once, at its lower end, so the top is still the least pair
+    // by (cost, lower index, higher index), and a contraction repairs the best pair of only those
+    // neighbours that are the lower end of a pair it changed (session 13: with each pair at both
+    // ends, twice as many heap updates).
+    // mate[u]: the position of best[u]'s higher end (read beside best[u] at the start of a
+    // contraction, instead of after it from `at`: one miss fewer in the chain to the pair's nodes).
+    BigVector<PairKey> best(n);
+    BigVector<std::uint32_t> mate(n);
     auto rescan = [&](std::uint32_t u, std::uint32_t self) {  // self = input_of[u]
         PairKey b;
+        std::uint32_t m = kNone;
         for (std::uint32_t e = node[u].row.start; e < node[u].row.start + node[u].row.degree; ++e) {
-            const PairKey key = KeyOf(pool[e].cost, self, pool[e].input);
-            if (key < b) b = key;
+            if (pool[e].input < self) continue;
+            const PairKey key{pool[e].cost, self, pool[e].input};
+            if (key < b) b = key, m = pool[e].id;
         }
         best[u] = b;
+        mate[u] = m;
     };
     tbb::parallel_for(tbb::blocked_range<std::uint32_t>(0, static_cast<std::uint32_t>(n), 4096),
                       [&](const tbb::blocked_range<std::uint32_t>& r) {
@@ -470,25 +494,31 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
             if (pool[e].id == id) return &pool[e];
         return nullptr;
     };
-    // Sets the cost of pair (u, w) at w's end and repairs w's best pair; `gone` (an input index)
-    // is a node that may just have left w's list (w's best may have been the pair with it). iw,
-    // iu: the input indices of w and u.
+    // Sets the cost of pair (u, w) at w's end where w is its lower end, and repairs w's best pair;
+    // `gone` (an input index) is a node that may just have left w's list (w's best may have been
+    // the pair with it). iw, iu: the input indices of w and u. Where u is the pair's lower end,
+    // u's own list holds the cost and its rescan after the contraction takes the pair into account.
     auto set_cost_at = [&](std::uint32_t w, std::uint32_t iw, std::uint32_t u, std::uint32_t iu, double cost,
                            std::uint32_t gone) {
-        Entry* e = entry_of(w, u);
-        SURFEL_CHECK(e != nullptr, "pair " << iu << "-" << iw << " missing at " << iw);
-        e->cost = cost;
-        const PairKey key = KeyOf(cost, iu, iw);
-        const bool was_best = best[w].lo == key.lo && best[w].hi == key.hi;
-        const bool lost_best = gone != kNone && (best[w].lo == gone || best[w].hi == gone);
-        if (was_best || lost_best) rescan(w, iw);
-        else if (key < best[w]) best[w] = key;
-        else return;
+        const bool lost_best = gone != kNone && best[w].hi == gone;
+        if (iw < iu) {
+            Entry* e = entry_of(w, u);
+            SURFEL_CHECK(e != nullptr, "pair " << iu << "-" << iw << " missing at " << iw);
+            e->cost = cost;
+            const PairKey key{cost, iw, iu};
+            if (best[w].hi == iu || lost_best) rescan(w, iw);
+            else if (key < best[w]) best[w] = key, mate[w] = u;
+            else return;
+        } else if (lost_best) {
+            rescan(w, iw);
+        } else {
+            return;
+        }
         heap.Update(w);
     };
 
-    std::vector<char> alive(n, 1);
-    std::vector<std::uint32_t> parent(n);
+    BigVector<char> alive(n, 1);
+    BigVector<std::uint32_t> parent(n);
     std::vector<Entry> merged;  // cost unused
     for (std::uint32_t i = 0; i < n; ++i) parent[i] = i;
     std::uint32_t epoch = 0;
@@ -497,7 +527,7 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
     const double total = target ? static_cast<double>(n - std::min(n, target)) : static_cast<double>(n);
     std::size_t since = 0;
     while (count > target && count > 1) {
-        const std::uint32_t top = heap.top();
+        const std::uint32_t top = heap.top(), top_mate = mate[top];  // both loads at once
         if (best[top].cost == kNever) {
             if (target == 0) break;  // error-bounded: no admissible contraction left
             // Components ran out of pairs before the target: connect the survivors by their k
@@ -534,11 +564,8 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
             for (std::uint32_t a = 0; a < live.size(); ++a) {
                 const std::uint32_t u = ids[a];
                 for (std::uint32_t e = node[u].row.start; e < node[u].row.start + node[u].row.degree; ++e) {
-                    const std::uint32_t w = pool[e].id;
-                    if (pool[e].input > input_of[u]) {
-                        pool[e].cost = cost_of(u, w, input_of[u], pool[e].input);
-                        entry_of(w, u)->cost = pool[e].cost;
-                    }
+                    if (pool[e].input > input_of[u])  // held at the lower end only
+                        pool[e].cost = cost_of(u, pool[e].id, input_of[u], pool[e].input);
                 }
             }
             for (const std::uint32_t u : ids) {
@@ -549,7 +576,7 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
             continue;
         }
         // Contract the best pair: v (the higher input index) into u.
-        const std::uint32_t u = at[best[top].lo], v = at[best[top].hi];
+        const std::uint32_t u = top, v = top_mate;  // the pair's lower end holds it
         const std::uint32_t u_input = best[top].lo, v_input = best[top].hi;
         // The loop waits on memory (each pair touches rows, quadrics and keys scattered over the
         // pool): ask for all of a contraction's lines at once, in two waves (a list's place, then
@@ -567,6 +594,7 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
                 __builtin_prefetch(&node[w]);
                 __builtin_prefetch(reinterpret_cast<const char*>(&node[w]) + 64);
                 __builtin_prefetch(&best[w]);
+                __builtin_prefetch(&mate[w]);
                 heap.PrefetchPosition(w);
             }
         for (const std::uint32_t x : {u, v})

@@ -100,6 +100,11 @@ void UniformGrid::BuildSparse(std::span<const Vec3f> points) {
 }
 
 namespace {
+// The first threshold of a point's k-nearest search, on the previous point's squared k-th distance
+// (1.2x the distance): when k candidates lie within it, the others need not be ranked (session 13:
+// the triangle-inequality bound alone keeps ~60 candidates a point for k = 16 on the merged scans).
+constexpr float kGuess = 1.44f;
+
 // Squared distances from p to m candidates held as coordinate columns: dx * dx + dy * dy + dz * dz
 // in float, in that order (FLANN's L2_Simple sums them so, and KdTree's rows must be matched to
 // the bit), vectorised.
@@ -186,11 +191,19 @@ std::vector<float> UniformGrid::KthNeighborDist2InBlock(int k) const {
                         if (prev_rho >= 0.0f) {
                             const float bound = prev_rho + (p - prev).norm();
                             const float b2 = bound * bound * 1.0001f;
-                            s = 0;
-                            for (std::size_t j = 0; j < m; ++j) {
-                                K[s] = D[j];
-                                s += D[j] <= b2 ? 1 : 0;
-                            }
+                            // First the previous point's k-th distance, widened by kGuess: when k
+                            // candidates lie within it, the k-th is among them.
+                            auto keep = [&](float t) {
+                                std::size_t kept_count = 0;
+                                for (std::size_t j = 0; j < m; ++j) {
+                                    K[kept_count] = D[j];
+                                    kept_count += D[j] <= t ? 1 : 0;
+                                }
+                                return kept_count;
+                            };
+                            const float guess = prev_rho * prev_rho * kGuess;
+                            s = guess < b2 ? keep(guess) : 0;
+                            if (s < static_cast<std::size_t>(k)) s = keep(b2);
                             F = K;
                         }
                         // The k-th smallest by rank: v is it when fewer than k candidates are
@@ -238,8 +251,8 @@ void UniformGrid::KnnInBlock(int k, std::uint32_t* indices, float* dist2, std::u
         std::uint32_t index;
     };
     tbb::parallel_for(tbb::blocked_range<int>(0, nx), [&](const tbb::blocked_range<int>& xs) {
-        std::vector<float> cx, cy, cz, d2;
-        std::vector<std::uint32_t> cid;
+        std::vector<float> cx, cy, cz, d2, fd;
+        std::vector<std::uint32_t> cid, fi, tie;
         std::array<Ranked, 64> best;
         // As in KthNeighborDist2InBlock: the last point ranked in this task and its k-th
         // distance bound the candidates of the next by the triangle inequality.
@@ -257,40 +270,79 @@ void UniformGrid::KnnInBlock(int k, std::uint32_t* indices, float* dist2, std::u
                     const std::size_t m = cx.size();
                     if (m <= static_cast<std::size_t>(k)) continue;  // fewer than k others
                     const int at[3] = {x, y, z};
-                    if (d2.size() < m) d2.resize(m);
+                    if (d2.size() < m) d2.resize(m), fd.resize(m), fi.resize(m), tie.resize(m);
                     const float *X = cx.data(), *Y = cy.data(), *Z = cz.data();
                     float* D = d2.data();
+                    float* FD = fd.data();
+                    std::uint32_t* FI = fi.data();
                     for (std::uint32_t i = first; i < last; ++i) {
                         const Vec3f p = sorted_[i];
                         Distances2(X, Y, Z, m, p, D);
                         D[self + (i - first)] = std::numeric_limits<float>::infinity();  // not its own
-                        // The k smallest by (distance, index), in one pass: a candidate beyond
-                        // the threshold (the triangle-inequality bound, then the k-th so far)
-                        // costs a compare; the rest go into a sorted k-array.
+                        // The k smallest by (distance, index) among the candidates within the
+                        // threshold (the triangle-inequality bound): those candidates first, kept
+                        // branch-free; the k-th distance by rank (as in KthNeighborDist2InBlock);
+                        // then the ones below it and the lowest indices at it, sorted. The same
+                        // rows as an insertion of every candidate into a sorted k-array (session
+                        // 13: that insertion's shifts and mispredicted branches were ~60 % of
+                        // this search).
                         float threshold = std::numeric_limits<float>::infinity();
                         if (prev_rho >= 0.0f) {
                             const float bound = prev_rho + (p - prev).norm();
                             threshold = bound * bound * 1.0001f;  // a hair wider for rounding
                         }
-                        int count = 0;
-                        for (std::size_t j = 0; j < m; ++j) {
-                            const float v = D[j];
-                            if (v > threshold) continue;
-                            const std::uint32_t id = cid[j];
-                            if (count == k) {
-                                if (v == best[k - 1].d2 && id > best[k - 1].index) continue;
-                                --count;
+                        // A tighter first try: the previous point's k-th distance, widened by
+                        // kGuess. When k candidates lie within it, the k smallest are among them.
+                        auto keep = [&](float t) {
+                            std::size_t kept = 0;
+                            for (std::size_t j = 0; j < m; ++j) {
+                                FD[kept] = D[j];
+                                FI[kept] = cid[j];
+                                kept += D[j] <= t ? 1 : 0;
                             }
-                            int pos = count++;
-                            while (pos > 0 && (best[pos - 1].d2 > v || (best[pos - 1].d2 == v && best[pos - 1].index > id))) {
+                            return kept;
+                        };
+                        const float guess = prev_rho * prev_rho * kGuess;
+                        std::size_t s = 0;
+                        if (prev_rho >= 0.0f && guess < threshold) s = keep(guess);
+                        if (s < static_cast<std::size_t>(k)) s = keep(threshold);
+                        if (s < static_cast<std::size_t>(k)) continue;
+                        float kth = -1.0f, lower = -1.0f, upper = std::numeric_limits<float>::infinity();
+                        for (std::size_t j = 0; j < s; ++j) {
+                            const float v = FD[j];
+                            if (v < lower || v > upper) continue;
+                            int less = 0, at_most = 0;
+#pragma omp simd reduction(+ : less, at_most)
+                            for (std::size_t l = 0; l < s; ++l) {
+                                less += FD[l] < v ? 1 : 0;
+                                at_most += FD[l] <= v ? 1 : 0;
+                            }
+                            if (less < k && at_most >= k) {
+                                kth = v;
+                                break;
+                            }
+                            if (at_most < k) lower = v;  // the k-th is above v
+                            else upper = v;              // at least k at or below v, k-th below v
+                        }
+                        if (!(kth >= 0.0f) || std::isinf(kth)) continue;
+                        int count = 0, ties = 0;
+                        for (std::size_t j = 0; j < s; ++j) {
+                            best[count] = {FD[j], FI[j]};
+                            count += FD[j] < kth ? 1 : 0;
+                            tie[ties] = FI[j];
+                            ties += FD[j] == kth ? 1 : 0;
+                        }
+                        std::partial_sort(tie.begin(), tie.begin() + (k - count), tie.begin() + ties);
+                        for (int t = 0; count < k; ++t) best[count++] = {kth, tie[t]};
+                        for (int r = 1; r < k; ++r) {
+                            const Ranked e = best[r];
+                            int pos = r;
+                            while (pos > 0 && (best[pos - 1].d2 > e.d2 || (best[pos - 1].d2 == e.d2 && best[pos - 1].index > e.index))) {
                                 best[pos] = best[pos - 1];
                                 --pos;
                             }
-                            best[pos] = {v, id};
-                            if (count == k) threshold = best[k - 1].d2;
+                            best[pos] = e;
                         }
-                        const float kth = best[k - 1].d2;
-                        if (count < k || std::isinf(kth)) continue;
                         prev = p;
                         prev_rho = std::sqrt(kth);
                         const float reach = BlockReach(p, at);
