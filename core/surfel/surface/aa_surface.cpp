@@ -2,13 +2,12 @@
 
 #include <Eigen/Eigenvalues>
 #include <algorithm>
+#include <bit>
 #include <future>
 #include <mutex>
 #include <cmath>
 #include <vector>
 #include <string>
-#include <cstdio>
-#include <cstdlib>
 
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
@@ -147,35 +146,167 @@ void AaOptions::Validate() const {
 }
 
 namespace {
+// The cell-sorted points as x/y/z arrays (dense grids: the gathers' and the scales' candidates).
+struct SortedXyz {
+    const float* x;
+    const float* y;
+    const float* z;
+};
+
 // AaBandwidth::kAdaptive: the per-point scales h_j = h * s_j, s_j the spacing over its median
 // (clamped to [1/kAdaptiveRange, kAdaptiveRange]) smoothed twice by a Gaussian average at the
 // point's own scale (within 2 h_j, weights exp(-d^2 / h_j^2)): the notes (1.3) warn that the
 // adaptation must itself be smooth, or the surface is not a manifold where the density jumps.
 // Per point, so the result does not depend on the thread count.
-void AdaptiveScales(const UniformGrid& grid, std::span<const Vec3f> pts, const SamplingDensity& density, float h,
+// On a dense grid the candidates of each column run are filtered by the kernels' GatherWithin
+// (the float distance test of ForEachWithin, x^2 + (y^2 + z^2), the same points in the same
+// order), so the sums are ForEachWithin's term for term; a sparse grid walks ForEachWithin.
+void AdaptiveScales(const UniformGrid& grid, std::span<const Vec3f> pts, const SortedXyz& sorted,
+                    const fit_kernels::Kernels& kernels, const SamplingDensity& density, float h,
                     std::vector<float>* scale) {
     const std::size_t n = pts.size();
     const float med = density.median_spacing > 0 ? density.median_spacing : 1.0f;
     std::vector<float> s(n), t(n);
     for (std::size_t i = 0; i < n; ++i)
         s[i] = std::clamp(density.spacing[i] / med, 1.0f / kAdaptiveRange, kAdaptiveRange);
+    scale->resize(n);
+    if (!grid.dense()) {
+        for (int pass = 0; pass < 2; ++pass) {
+            tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 1024), [&](const tbb::blocked_range<std::size_t>& r) {
+                for (std::size_t i = r.begin(); i != r.end(); ++i) {
+                    const float hi = h * s[i], inv = 1.0f / (hi * hi);
+                    double sw = 0, ss = 0;
+                    grid.ForEachWithin(pts[i], std::min(2.0f * hi, grid.cell()), [&](std::uint32_t j, const Vec3f&, float d2) {
+                        const double w = std::exp(-double(d2) * inv);
+                        sw += w;
+                        ss += w * s[j];
+                    });
+                    t[i] = sw > 0 ? static_cast<float>(ss / sw) : s[i];
+                }
+            });
+            s.swap(t);
+        }
+        for (std::size_t i = 0; i < n; ++i) (*scale)[i] = h * s[i];
+        return;
+    }
+    // Dense grid: the points and their s in cell order (s[k] is point order[k]'s), the neighbours
+    // named by their place in that order (`place`), for locality; the same values, the same sums.
+    const std::uint32_t* order = grid.sorted_indices();
+    const Vec3f* sp = grid.sorted_points();
+    std::vector<std::uint32_t> place(n);
+    for (std::size_t k = 0; k < n; ++k) place[k] = static_cast<std::uint32_t>(k), t[k] = s[order[k]];
+    s.swap(t);
     for (int pass = 0; pass < 2; ++pass) {
         tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 1024), [&](const tbb::blocked_range<std::size_t>& r) {
-            for (std::size_t i = r.begin(); i != r.end(); ++i) {
-                const float hi = h * s[i], inv = 1.0f / (hi * hi);
+            std::vector<float> ox, oy, oz, od2;
+            std::vector<std::uint32_t> oi;
+            for (std::size_t k = r.begin(); k != r.end(); ++k) {
+                const float hi = h * s[k], inv = 1.0f / (hi * hi);
+                const float radius = std::min(2.0f * hi, grid.cell()), r2 = radius * radius;
+                const Vec3f& q = sp[k];
                 double sw = 0, ss = 0;
-                grid.ForEachWithin(pts[i], std::min(2.0f * hi, grid.cell()), [&](std::uint32_t j, const Vec3f&, float d2) {
-                    const double w = std::exp(-double(d2) * inv);
-                    sw += w;
-                    ss += w * s[j];
+                grid.ForEachCandidateRun(q, radius, [&](std::uint32_t first, std::uint32_t last) {
+                    const std::size_t m = last - first;
+                    if (od2.size() < m + 8) {
+                        for (auto* v : {&ox, &oy, &oz, &od2}) v->resize(std::max<std::size_t>(1024, 2 * (m + 8)));
+                        oi.resize(od2.size());
+                    }
+                    const std::size_t c = kernels.gather_within(sorted.x + first, sorted.y + first, sorted.z + first,
+                                                                place.data() + first, nullptr, m, q.x(), q.y(), q.z(),
+                                                                r2, ox.data(), oy.data(), oz.data(), od2.data(),
+                                                                oi.data(), nullptr);
+                    for (std::size_t j = 0; j < c; ++j) {
+                        const double w = std::exp(-double(od2[j]) * inv);
+                        sw += w;
+                        ss += w * s[oi[j]];
+                    }
                 });
-                t[i] = sw > 0 ? static_cast<float>(ss / sw) : s[i];
+                t[k] = sw > 0 ? static_cast<float>(ss / sw) : s[k];
             }
         });
         s.swap(t);
     }
-    scale->resize(n);
-    for (std::size_t i = 0; i < n; ++i) (*scale)[i] = h * s[i];
+    for (std::size_t k = 0; k < n; ++k) (*scale)[order[k]] = h * s[k];
+}
+
+// The gather scale of every ball (AaSurface::Impl::reach): the largest h_j within
+// radius(i) = cutoff x h_i + max(rho_i, ball_h x h_i) of p_i (ForEachWithin's float distance
+// test), at least h_i. A maximum does not depend on the order of its terms, so on a dense grid
+// only the points with a scale above a floor T are read: a candidate run, or a block of 16
+// cell-sorted points, whose largest scale is <= T is skipped (the largest scale of each block and
+// a sparse table over the blocks bound any run's). When some point within the radius has a scale
+// above T, the largest of those is the answer; else the search is repeated with T = h_i. The
+// first T is 0.95 x the previous point's answer in cell order (a neighbour; the scales are
+// smooth, so few blocks exceed it). A sparse grid walks ForEachWithin (within its cell).
+std::vector<float> GatherReach(const UniformGrid& grid, std::span<const Vec3f> pts, const std::vector<float>& scale,
+                               const std::vector<float>& ball_radius, float cutoff, float ball_h) {
+    const std::size_t n = pts.size();
+    std::vector<float> reach(n);
+    const std::uint32_t* order = grid.sorted_indices();
+    if (!grid.dense()) {
+        tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 1024), [&](const tbb::blocked_range<std::size_t>& r) {
+            for (std::size_t i = r.begin(); i != r.end(); ++i) {
+                float m = scale[i];
+                const float rad = cutoff * m + std::max(ball_radius[i], ball_h * m);
+                grid.ForEachWithin(pts[i], std::min(rad, grid.cell()),
+                                   [&](std::uint32_t j, const Vec3f&, float) { m = std::max(m, scale[j]); });
+                reach[i] = m;
+            }
+        });
+        return reach;
+    }
+    // Upper bounds of the scales over ranges of sorted points: the largest of each block of
+    // kFine, and a sparse table over the blocks (level l: the largest of 2^l blocks from b).
+    constexpr std::size_t kFine = 16;
+    const std::size_t blocks = (n + kFine - 1) / kFine;
+    std::vector<float> sorted_scale(n);
+    std::vector<std::vector<float>> table(1, std::vector<float>(blocks, 0.0f));
+    for (std::size_t k = 0; k < n; ++k) {
+        sorted_scale[k] = scale[order[k]];
+        table[0][k / kFine] = std::max(table[0][k / kFine], sorted_scale[k]);
+    }
+    for (std::size_t span = 2; span <= blocks; span *= 2) {
+        const std::vector<float>& below = table.back();
+        std::vector<float> level(blocks - span + 1);
+        for (std::size_t b = 0; b < level.size(); ++b) level[b] = std::max(below[b], below[b + span / 2]);
+        table.push_back(std::move(level));
+    }
+    const std::vector<float>& fine_max = table[0];
+    // The largest scale in blocks b0..b1 (inclusive).
+    const auto blocks_max = [&](std::size_t b0, std::size_t b1) {
+        const int l = std::bit_width(b1 - b0 + 1) - 1;
+        return std::max(table[l][b0], table[l][b1 + 1 - (std::size_t(1) << l)]);
+    };
+    const Vec3f* sp = grid.sorted_points();
+    // The largest scale above `floor` within `rad` of q, or `floor` when there is none.
+    const auto max_above = [&](const Vec3f& q, float rad, float floor) {
+        float m = floor;
+        const float r2 = rad * rad;
+        grid.ForEachCandidateRun(q, rad, [&](std::uint32_t first, std::uint32_t last) {
+            if (blocks_max(first / kFine, (last - 1) / kFine) <= m) return;
+            for (std::size_t k = first; k < last;) {
+                const std::size_t end = std::min<std::size_t>(last, (k / kFine + 1) * kFine);
+                if (fine_max[k / kFine] > m)
+                    for (std::size_t j = k; j < end; ++j)
+                        if (sorted_scale[j] > m && (sp[j] - q).squaredNorm() <= r2) m = sorted_scale[j];
+                k = end;
+            }
+        });
+        return m;
+    };
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 1024), [&](const tbb::blocked_range<std::size_t>& r) {
+        float previous = 0.0f;
+        for (std::size_t k = r.begin(); k != r.end(); ++k) {
+            const std::uint32_t i = order[k];
+            const float hi = scale[i];
+            const float rad = cutoff * hi + std::max(ball_radius[i], ball_h * hi);
+            const float floor = 0.95f * previous;
+            float m = floor > hi ? max_above(sp[k], rad, floor) : floor;
+            if (!(m > floor)) m = max_above(sp[k], rad, hi);
+            reach[i] = previous = m;
+        }
+    });
+    return reach;
 }
 }  // namespace
 
@@ -235,6 +366,16 @@ void AaSurface::SetUpScales() {
     if (o.h == 0) o.h = (0.5f * kSurfaceScaleSpacings) * DefaultScale(density);
     if (!(o.h > 0)) throw Error(ErrorCode::kInvalidArgument, "cannot derive h from the cloud (all points coincide); pass h");
     if (o.precision == 0) o.precision = 1e-3f * o.h;
+    // The grid's cell-sorted points as x/y/z arrays (dense grids: the gathers and the adaptive
+    // scales read them), once.
+    const auto fill_sorted_xyz = [this] {
+        if (!impl_->grid->dense() || !impl_->sorted_x.empty()) return;
+        const std::size_t n = impl_->cloud.size();
+        const Vec3f* p = impl_->grid->sorted_points();
+        for (auto* v : {&impl_->sorted_x, &impl_->sorted_y, &impl_->sorted_z}) v->resize(n);
+        for (std::size_t i = 0; i < n; ++i)
+            impl_->sorted_x[i] = p[i].x(), impl_->sorted_y[i] = p[i].y(), impl_->sorted_z[i] = p[i].z();
+    };
     if (o.bandwidth == AaBandwidth::kFixed) {
         impl_->grid = std::make_unique<UniformGrid>(cloud.positions, o.cutoff * o.h);
     } else {
@@ -243,7 +384,10 @@ void AaSurface::SetUpScales() {
         float cell = o.cutoff * o.h;
         if (!UniformGrid::FitsDense(cloud.Bounds(), cloud.size(), cell)) cell *= kAdaptiveRange;
         impl_->grid = std::make_unique<UniformGrid>(cloud.positions, cell);
-        AdaptiveScales(*impl_->grid, cloud.positions, density, o.h, &impl_->scale);
+        fill_sorted_xyz();
+        AdaptiveScales(*impl_->grid, cloud.positions,
+                       {impl_->sorted_x.data(), impl_->sorted_y.data(), impl_->sorted_z.data()}, *impl_->kernels,
+                       density, o.h, &impl_->scale);
         const std::size_t n = cloud.size();
         impl_->inv_h2.resize(n);
         for (std::size_t i = 0; i < n; ++i) impl_->inv_h2[i] = 1.0f / (impl_->scale[i] * impl_->scale[i]);
@@ -251,25 +395,9 @@ void AaSurface::SetUpScales() {
         // Gather scale of ball i: the largest h_j within cutoff x h_i + rho_i (+ the ball_h
         // widening) of its centre; a point farther out would need a scale that large to reach a
         // fit in the ball with a weight above exp(-cutoff^2).
-        impl_->reach.resize(n);
-        const UniformGrid& g = *impl_->grid;
-        tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 1024), [&](const tbb::blocked_range<std::size_t>& r) {
-            for (std::size_t i = r.begin(); i != r.end(); ++i) {
-                float m = impl_->scale[i];
-                const float rad = o.cutoff * m + std::max(impl_->ball_radius[i], o.ball_h * m);
-                g.ForEachWithin(cloud.positions[i], g.dense() ? rad : std::min(rad, g.cell()),
-                                [&](std::uint32_t j, const Vec3f&, float) { m = std::max(m, impl_->scale[j]); });
-                impl_->reach[i] = m;
-            }
-        });
+        impl_->reach = GatherReach(*impl_->grid, cloud.positions, impl_->scale, impl_->ball_radius, o.cutoff, o.ball_h);
     }
-    if (impl_->grid->dense()) {
-        const std::size_t n = cloud.size();
-        const Vec3f* p = impl_->grid->sorted_points();
-        for (auto* v : {&impl_->sorted_x, &impl_->sorted_y, &impl_->sorted_z}) v->resize(n);
-        for (std::size_t i = 0; i < n; ++i)
-            impl_->sorted_x[i] = p[i].x(), impl_->sorted_y[i] = p[i].y(), impl_->sorted_z[i] = p[i].z();
-    }
+    fill_sorted_xyz();
     if (o.boundary > 0) {
         const float med = density.median_spacing > 0 ? density.median_spacing : 1.0f;
         impl_->boundary_unit = std::max(1.0f, kBoundarySpacings * density.median_spacing / o.h);
@@ -495,11 +623,6 @@ bool AaSurface::FitAt(const Vec3d& r, Fit* fit, float cutoff, bool attributes, s
     impl_->kernels->poly_sums(nb.lx.data(), nb.ly.data(), nb.lz.data(), nb.w.data(), m, pf.inv_h(), sums);
     pf.AddSums(sums);
     if (!pf.Solve(&fit->g)) return false;
-    if (static FILE* dbgf = getenv("SURFEL_FITLOG") ? fopen(getenv("SURFEL_FITLOG"), "w") : nullptr; dbgf) {
-        double sx = 0, sy = 0, sz = 0, sw = 0, lx = 0, ly = 0, lz = 0; unsigned long long si = 0;
-        for (std::size_t j = 0; j < m; ++j) { sx += nb.x[j]; sy += nb.y[j]; sz += nb.z[j]; sw += nb.w[j]; si = si * 31 + nb.index[j]; lx += nb.lx[j]; ly += nb.ly[j]; lz += nb.lz[j]; }
-        fprintf(dbgf, "%a %a %a %zu | %a %a %a %a %llu | %a %a %a | %a %a %a %a %a %a | %a %a %a\n", r.x(), r.y(), r.z(), m, sx, sy, sz, sw, si, lx, ly, lz, fit->g.c[0], fit->g.c[1], fit->g.c[2], fit->g.c[3], fit->g.c[4], fit->g.c[5], fit->frame.n.x(), fit->frame.n.y(), fit->frame.n.z());
-    }
     fit->valid = true;
     if (!attributes) return true;
     fit->normal_ref = WeightedNormal(cloud, nb);
@@ -585,8 +708,6 @@ std::optional<AaHit> AaSurface::IntersectInBall(std::uint32_t ball, const Vec3d&
     const double rho = impl_->ball_radius[ball];
     const double rho2 = rho * rho * (1.0 + 1e-9);
     auto inside = [&](double t) { return t >= tmin && t <= tmax && (o + t * d - center).squaredNorm() <= rho2; };
-    if (static FILE* dbgb = getenv("SURFEL_FITLOG") ? fopen((std::string(getenv("SURFEL_FITLOG")) + ".b").c_str(), "w") : nullptr; dbgb)
-        fprintf(dbgb, "%u %a %a %a %a %a %a %a %a %a\n", ball, o.x(), o.y(), o.z(), d.x(), d.y(), d.z(), tmin, tmax, known_hit);
 
     // r_0: the ray against the ball centre's polynomial (section 5), cached per ball.
     // The same-sheet test below, decided before the centre fit: any root in [tmin, tmax] would
