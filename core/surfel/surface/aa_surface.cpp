@@ -682,7 +682,6 @@ bool AaSurface::CenterFit(std::uint32_t ball, Fit* out, AaCounters* counters) co
         unpack(entry);
         return true;
     }
-    ++counters->evaluations;
     CenterEntry fresh{};
     const bool ok = FitAt(center, out, kCenterCutoff, false, ball);
     if (ok) {
@@ -690,12 +689,18 @@ bool AaSurface::CenterFit(std::uint32_t ball, Fit* out, AaCounters* counters) co
         for (int i = 0; i < 3; ++i) fresh.u[i] = static_cast<float>(out->frame.u[i]);
         for (int i = 0; i < 6; ++i) fresh.c[i] = static_cast<float>(out->g.c[i]);
     }
+    // (Another thread computing the same ball computes the same values: the fit is deterministic.)
+    // The thread that stores the entry counts the evaluation; one that computed it at the same
+    // time counts a cache hit, so that the counters, like the image, do not depend on the timing
+    // of the threads (each ball's centre fit is one evaluation, every other look-up a hit).
     std::uint8_t expected = 0;
     if (state.compare_exchange_strong(expected, 1, std::memory_order_acq_rel)) {
         entry = fresh;
         state.store(ok ? 2 : 3, std::memory_order_release);
+        ++counters->evaluations;
+    } else {
+        ++counters->cache_hits;
     }
-    // (Another thread computing the same ball computes the same values: the fit is deterministic.)
     if (!ok) return false;
     unpack(fresh);
     return true;
