@@ -41,13 +41,20 @@ struct CenterEntry {
     float c[6];
 };
 
+class ScaleMaxima;
+
 struct AaSurface::Impl {
     const PointCloud& cloud;
     AaOptions opt;
     std::vector<float> ball_radius;
-    // AaBandwidth::kAdaptive (empty when fixed): h_j, 1 / h_j^2, and the gather scale of ball i,
-    // the largest h_j of the points near it (a fit in ball i gathers within cutoff x that).
-    std::vector<float> scale, inv_h2, reach;
+    // AaBandwidth::kAdaptive (empty when fixed): h_j and 1 / h_j^2.
+    std::vector<float> scale, inv_h2;
+    // AaBandwidth::kAdaptive: the gather scale of ball i, the largest h_j of the points near it (a
+    // fit in ball i gathers within cutoff x that; 0 = not computed yet), filled on first need
+    // (only the balls a ray tries need it: about half of them at the paper's framing), from
+    // scale_maxima.
+    std::unique_ptr<std::atomic<float>[]> reach;
+    std::unique_ptr<ScaleMaxima> scale_maxima;
     // AaOptions::boundary (empty when boundary = 0): each point's sample spacing eta_j (notes
     // 1.1.1, the ball_k-th neighbour) over the median spacing, for the local scale of a hit.
     std::vector<float> relative_spacing;
@@ -229,84 +236,87 @@ void AdaptiveScales(const UniformGrid& grid, std::span<const Vec3f> pts, const S
     for (std::size_t k = 0; k < n; ++k) (*scale)[order[k]] = h * s[k];
 }
 
-// The gather scale of every ball (AaSurface::Impl::reach): the largest h_j within
+}  // namespace
+
+// The gather scale of a ball (AaSurface::Impl::reach): the largest h_j within
 // radius(i) = cutoff x h_i + max(rho_i, ball_h x h_i) of p_i (ForEachWithin's float distance
 // test), at least h_i. A maximum does not depend on the order of its terms, so on a dense grid
-// only the points with a scale above a floor T are read: a candidate run, or a block of 16
-// cell-sorted points, whose largest scale is <= T is skipped (the largest scale of each block and
-// a sparse table over the blocks bound any run's). When some point within the radius has a scale
-// above T, the largest of those is the answer; else the search is repeated with T = h_i. The
-// first T is 0.95 x the previous point's answer in cell order (a neighbour; the scales are
-// smooth, so few blocks exceed it). A sparse grid walks ForEachWithin (within its cell).
-std::vector<float> GatherReach(const UniformGrid& grid, std::span<const Vec3f> pts, const std::vector<float>& scale,
-                               const std::vector<float>& ball_radius, float cutoff, float ball_h) {
-    const std::size_t n = pts.size();
-    std::vector<float> reach(n);
-    const std::uint32_t* order = grid.sorted_indices();
-    if (!grid.dense()) {
-        tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 1024), [&](const tbb::blocked_range<std::size_t>& r) {
-            for (std::size_t i = r.begin(); i != r.end(); ++i) {
-                float m = scale[i];
-                const float rad = cutoff * m + std::max(ball_radius[i], ball_h * m);
-                grid.ForEachWithin(pts[i], std::min(rad, grid.cell()),
-                                   [&](std::uint32_t j, const Vec3f&, float) { m = std::max(m, scale[j]); });
-                reach[i] = m;
-            }
-        });
-        return reach;
+// only the points with a scale above the floor h_i are read: a candidate run, or a block of 16
+// cell-sorted points, whose largest scale is <= the maximum so far is skipped (the largest scale
+// of each block, and a sparse table over the blocks for a run's). A sparse grid walks
+// ForEachWithin (within its cell).
+class ScaleMaxima {
+public:
+    ScaleMaxima(const UniformGrid& grid, const std::vector<float>& scale) : grid_(grid), scale_(scale) {
+        if (!grid.dense()) return;
+        const std::size_t n = scale.size();
+        const std::uint32_t* order = grid.sorted_indices();
+        const std::size_t blocks = (n + kBlock - 1) / kBlock;
+        sorted_scale_.resize(n);
+        table_.assign(1, std::vector<float>(blocks, 0.0f));
+        for (std::size_t k = 0; k < n; ++k) {
+            sorted_scale_[k] = scale[order[k]];
+            table_[0][k / kBlock] = std::max(table_[0][k / kBlock], sorted_scale_[k]);
+        }
+        // Level l: the largest of 2^l blocks from b.
+        for (std::size_t span = 2; span <= blocks; span *= 2) {
+            const std::vector<float>& below = table_.back();
+            std::vector<float> level(blocks - span + 1);
+            for (std::size_t b = 0; b < level.size(); ++b) level[b] = std::max(below[b], below[b + span / 2]);
+            table_.push_back(std::move(level));
+        }
     }
-    // Upper bounds of the scales over ranges of sorted points: the largest of each block of
-    // kFine, and a sparse table over the blocks (level l: the largest of 2^l blocks from b).
-    constexpr std::size_t kFine = 16;
-    const std::size_t blocks = (n + kFine - 1) / kFine;
-    std::vector<float> sorted_scale(n);
-    std::vector<std::vector<float>> table(1, std::vector<float>(blocks, 0.0f));
-    for (std::size_t k = 0; k < n; ++k) {
-        sorted_scale[k] = scale[order[k]];
-        table[0][k / kFine] = std::max(table[0][k / kFine], sorted_scale[k]);
-    }
-    for (std::size_t span = 2; span <= blocks; span *= 2) {
-        const std::vector<float>& below = table.back();
-        std::vector<float> level(blocks - span + 1);
-        for (std::size_t b = 0; b < level.size(); ++b) level[b] = std::max(below[b], below[b + span / 2]);
-        table.push_back(std::move(level));
-    }
-    const std::vector<float>& fine_max = table[0];
-    // The largest scale in blocks b0..b1 (inclusive).
-    const auto blocks_max = [&](std::size_t b0, std::size_t b1) {
-        const int l = std::bit_width(b1 - b0 + 1) - 1;
-        return std::max(table[l][b0], table[l][b1 + 1 - (std::size_t(1) << l)]);
-    };
-    const Vec3f* sp = grid.sorted_points();
-    // The largest scale above `floor` within `rad` of q, or `floor` when there is none.
-    const auto max_above = [&](const Vec3f& q, float rad, float floor) {
+
+    /// The largest scale above `floor` within `rad` of q, or `floor` when there is none.
+    float MaxAbove(const Vec3f& q, float rad, float floor) const {
         float m = floor;
+        if (!grid_.dense()) {
+            grid_.ForEachWithin(q, std::min(rad, grid_.cell()),
+                                [&](std::uint32_t j, const Vec3f&, float) { m = std::max(m, scale_[j]); });
+            return m;
+        }
         const float r2 = rad * rad;
-        grid.ForEachCandidateRun(q, rad, [&](std::uint32_t first, std::uint32_t last) {
-            if (blocks_max(first / kFine, (last - 1) / kFine) <= m) return;
+        const Vec3f* sp = grid_.sorted_points();
+        const std::vector<float>& block_max = table_[0];
+        grid_.ForEachCandidateRun(q, rad, [&](std::uint32_t first, std::uint32_t last) {
+            if (BlocksMax(first / kBlock, (last - 1) / kBlock) <= m) return;
             for (std::size_t k = first; k < last;) {
-                const std::size_t end = std::min<std::size_t>(last, (k / kFine + 1) * kFine);
-                if (fine_max[k / kFine] > m)
+                const std::size_t end = std::min<std::size_t>(last, (k / kBlock + 1) * kBlock);
+                if (block_max[k / kBlock] > m)
                     for (std::size_t j = k; j < end; ++j)
-                        if (sorted_scale[j] > m && (sp[j] - q).squaredNorm() <= r2) m = sorted_scale[j];
+                        if (sorted_scale_[j] > m && (sp[j] - q).squaredNorm() <= r2) m = sorted_scale_[j];
                 k = end;
             }
         });
         return m;
-    };
-    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 1024), [&](const tbb::blocked_range<std::size_t>& r) {
-        float previous = 0.0f;
-        for (std::size_t k = r.begin(); k != r.end(); ++k) {
-            const std::uint32_t i = order[k];
-            const float hi = scale[i];
-            const float rad = cutoff * hi + std::max(ball_radius[i], ball_h * hi);
-            const float floor = 0.95f * previous;
-            float m = floor > hi ? max_above(sp[k], rad, floor) : floor;
-            if (!(m > floor)) m = max_above(sp[k], rad, hi);
-            reach[i] = previous = m;
-        }
-    });
-    return reach;
+    }
+
+private:
+    static constexpr std::size_t kBlock = 16;
+    // The largest scale in blocks b0..b1 (inclusive).
+    float BlocksMax(std::size_t b0, std::size_t b1) const {
+        const int l = std::bit_width(b1 - b0 + 1) - 1;
+        return std::max(table_[l][b0], table_[l][b1 + 1 - (std::size_t(1) << l)]);
+    }
+    const UniformGrid& grid_;
+    const std::vector<float>& scale_;
+    std::vector<float> sorted_scale_;
+    std::vector<std::vector<float>> table_;
+};
+
+namespace {
+// The gather scale of ball i (see ScaleMaxima), computed on first need and cached (the same value
+// whichever thread computes it). (A template so that it can take the surface's private Impl.)
+template <typename Impl>
+float BallReach(const Impl& im, std::size_t i) {
+    std::atomic<float>& cached = im.reach[i];
+    const float c = cached.load(std::memory_order_relaxed);
+    if (c > 0) return c;
+    const float hi = im.scale[i];
+    const float rad = im.opt.cutoff * hi + std::max(im.ball_radius[i], im.opt.ball_h * hi);
+    const float v = im.scale_maxima->MaxAbove(im.cloud.positions[i], rad, hi);
+    cached.store(v, std::memory_order_relaxed);
+    return v;
 }
 }  // namespace
 
@@ -394,8 +404,10 @@ void AaSurface::SetUpScales() {
         impl_->max_scale = *std::max_element(impl_->scale.begin(), impl_->scale.end());
         // Gather scale of ball i: the largest h_j within cutoff x h_i + rho_i (+ the ball_h
         // widening) of its centre; a point farther out would need a scale that large to reach a
-        // fit in the ball with a weight above exp(-cutoff^2).
-        impl_->reach = GatherReach(*impl_->grid, cloud.positions, impl_->scale, impl_->ball_radius, o.cutoff, o.ball_h);
+        // fit in the ball with a weight above exp(-cutoff^2). Computed per ball on first need.
+        impl_->scale_maxima = std::make_unique<ScaleMaxima>(*impl_->grid, impl_->scale);
+        impl_->reach.reset(new std::atomic<float>[n]);
+        for (std::size_t i = 0; i < n; ++i) impl_->reach[i].store(0.0f, std::memory_order_relaxed);
     }
     fill_sorted_xyz();
     if (o.boundary > 0) {
@@ -572,7 +584,7 @@ void Gather(const UniformGrid& grid, const SortedPoints& sorted, const std::vect
 template <typename Impl>
 WeightedMoments GatherWeighted(const Impl& im, const Vec3f& o, float cutoff, std::int64_t ball, NeighborBatch& nb) {
     const AaOptions& opt = im.opt;
-    const float H = im.scale.empty() ? opt.h : ball >= 0 ? im.reach[std::size_t(ball)] : im.max_scale;
+    const float H = im.scale.empty() ? opt.h : ball >= 0 ? BallReach(im, std::size_t(ball)) : im.max_scale;
     const SortedPoints sorted{{im.sorted_x.data(), im.sorted_y.data(), im.sorted_z.data()},
                               {im.sorted_nx.data(), im.sorted_ny.data(), im.sorted_nz.data()},
                               !im.sorted_nx.empty()};
