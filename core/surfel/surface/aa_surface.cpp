@@ -2,13 +2,12 @@
 
 #include <Eigen/Eigenvalues>
 #include <algorithm>
+#include <bit>
 #include <future>
 #include <mutex>
 #include <cmath>
 #include <vector>
 #include <string>
-#include <cstdio>
-#include <cstdlib>
 
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
@@ -42,13 +41,20 @@ struct CenterEntry {
     float c[6];
 };
 
+class ScaleMaxima;
+
 struct AaSurface::Impl {
     const PointCloud& cloud;
     AaOptions opt;
     std::vector<float> ball_radius;
-    // AaBandwidth::kAdaptive (empty when fixed): h_j, 1 / h_j^2, and the gather scale of ball i,
-    // the largest h_j of the points near it (a fit in ball i gathers within cutoff x that).
-    std::vector<float> scale, inv_h2, reach;
+    // AaBandwidth::kAdaptive (empty when fixed): h_j and 1 / h_j^2.
+    std::vector<float> scale, inv_h2;
+    // AaBandwidth::kAdaptive: the gather scale of ball i, the largest h_j of the points near it (a
+    // fit in ball i gathers within cutoff x that; 0 = not computed yet), filled on first need
+    // (only the balls a ray tries need it: about half of them at the paper's framing), from
+    // scale_maxima.
+    std::unique_ptr<std::atomic<float>[]> reach;
+    std::unique_ptr<ScaleMaxima> scale_maxima;
     // AaOptions::boundary (empty when boundary = 0): each point's sample spacing eta_j (notes
     // 1.1.1, the ball_k-th neighbour) over the median spacing, for the local scale of a hit.
     std::vector<float> relative_spacing;
@@ -147,35 +153,170 @@ void AaOptions::Validate() const {
 }
 
 namespace {
+// The cell-sorted points as x/y/z arrays (dense grids: the gathers' and the scales' candidates).
+struct SortedXyz {
+    const float* x;
+    const float* y;
+    const float* z;
+};
+
 // AaBandwidth::kAdaptive: the per-point scales h_j = h * s_j, s_j the spacing over its median
 // (clamped to [1/kAdaptiveRange, kAdaptiveRange]) smoothed twice by a Gaussian average at the
 // point's own scale (within 2 h_j, weights exp(-d^2 / h_j^2)): the notes (1.3) warn that the
 // adaptation must itself be smooth, or the surface is not a manifold where the density jumps.
 // Per point, so the result does not depend on the thread count.
-void AdaptiveScales(const UniformGrid& grid, std::span<const Vec3f> pts, const SamplingDensity& density, float h,
+// On a dense grid the candidates of each column run are filtered by the kernels' GatherWithin
+// (the float distance test of ForEachWithin, x^2 + (y^2 + z^2), the same points in the same
+// order), so the sums are ForEachWithin's term for term; a sparse grid walks ForEachWithin.
+void AdaptiveScales(const UniformGrid& grid, std::span<const Vec3f> pts, const SortedXyz& sorted,
+                    const fit_kernels::Kernels& kernels, const SamplingDensity& density, float h,
                     std::vector<float>* scale) {
     const std::size_t n = pts.size();
     const float med = density.median_spacing > 0 ? density.median_spacing : 1.0f;
     std::vector<float> s(n), t(n);
     for (std::size_t i = 0; i < n; ++i)
         s[i] = std::clamp(density.spacing[i] / med, 1.0f / kAdaptiveRange, kAdaptiveRange);
+    scale->resize(n);
+    if (!grid.dense()) {
+        for (int pass = 0; pass < 2; ++pass) {
+            tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 1024), [&](const tbb::blocked_range<std::size_t>& r) {
+                for (std::size_t i = r.begin(); i != r.end(); ++i) {
+                    const float hi = h * s[i], inv = 1.0f / (hi * hi);
+                    double sw = 0, ss = 0;
+                    grid.ForEachWithin(pts[i], std::min(2.0f * hi, grid.cell()), [&](std::uint32_t j, const Vec3f&, float d2) {
+                        const double w = std::exp(-double(d2) * inv);
+                        sw += w;
+                        ss += w * s[j];
+                    });
+                    t[i] = sw > 0 ? static_cast<float>(ss / sw) : s[i];
+                }
+            });
+            s.swap(t);
+        }
+        for (std::size_t i = 0; i < n; ++i) (*scale)[i] = h * s[i];
+        return;
+    }
+    // Dense grid: the points and their s in cell order (s[k] is point order[k]'s), the neighbours
+    // named by their place in that order (`place`), for locality; the same values, the same sums.
+    const std::uint32_t* order = grid.sorted_indices();
+    const Vec3f* sp = grid.sorted_points();
+    std::vector<std::uint32_t> place(n);
+    for (std::size_t k = 0; k < n; ++k) place[k] = static_cast<std::uint32_t>(k), t[k] = s[order[k]];
+    s.swap(t);
     for (int pass = 0; pass < 2; ++pass) {
         tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 1024), [&](const tbb::blocked_range<std::size_t>& r) {
-            for (std::size_t i = r.begin(); i != r.end(); ++i) {
-                const float hi = h * s[i], inv = 1.0f / (hi * hi);
+            std::vector<float> ox, oy, oz, od2;
+            std::vector<std::uint32_t> oi;
+            for (std::size_t k = r.begin(); k != r.end(); ++k) {
+                const float hi = h * s[k], inv = 1.0f / (hi * hi);
+                const float radius = std::min(2.0f * hi, grid.cell()), r2 = radius * radius;
+                const Vec3f& q = sp[k];
                 double sw = 0, ss = 0;
-                grid.ForEachWithin(pts[i], std::min(2.0f * hi, grid.cell()), [&](std::uint32_t j, const Vec3f&, float d2) {
-                    const double w = std::exp(-double(d2) * inv);
-                    sw += w;
-                    ss += w * s[j];
+                grid.ForEachCandidateRun(q, radius, [&](std::uint32_t first, std::uint32_t last) {
+                    const std::size_t m = last - first;
+                    if (od2.size() < m + 8) {
+                        for (auto* v : {&ox, &oy, &oz, &od2}) v->resize(std::max<std::size_t>(1024, 2 * (m + 8)));
+                        oi.resize(od2.size());
+                    }
+                    const std::size_t c = kernels.gather_within(sorted.x + first, sorted.y + first, sorted.z + first,
+                                                                place.data() + first, nullptr, m, q.x(), q.y(), q.z(),
+                                                                r2, ox.data(), oy.data(), oz.data(), od2.data(),
+                                                                oi.data(), nullptr);
+                    for (std::size_t j = 0; j < c; ++j) {
+                        const double w = std::exp(-double(od2[j]) * inv);
+                        sw += w;
+                        ss += w * s[oi[j]];
+                    }
                 });
-                t[i] = sw > 0 ? static_cast<float>(ss / sw) : s[i];
+                t[k] = sw > 0 ? static_cast<float>(ss / sw) : s[k];
             }
         });
         s.swap(t);
     }
-    scale->resize(n);
-    for (std::size_t i = 0; i < n; ++i) (*scale)[i] = h * s[i];
+    for (std::size_t k = 0; k < n; ++k) (*scale)[order[k]] = h * s[k];
+}
+
+}  // namespace
+
+// The gather scale of a ball (AaSurface::Impl::reach): the largest h_j within
+// radius(i) = cutoff x h_i + max(rho_i, ball_h x h_i) of p_i (ForEachWithin's float distance
+// test), at least h_i. A maximum does not depend on the order of its terms, so on a dense grid
+// only the points with a scale above the floor h_i are read: a candidate run, or a block of 16
+// cell-sorted points, whose largest scale is <= the maximum so far is skipped (the largest scale
+// of each block, and a sparse table over the blocks for a run's). A sparse grid walks
+// ForEachWithin (within its cell).
+class ScaleMaxima {
+public:
+    ScaleMaxima(const UniformGrid& grid, const std::vector<float>& scale) : grid_(grid), scale_(scale) {
+        if (!grid.dense()) return;
+        const std::size_t n = scale.size();
+        const std::uint32_t* order = grid.sorted_indices();
+        const std::size_t blocks = (n + kBlock - 1) / kBlock;
+        sorted_scale_.resize(n);
+        table_.assign(1, std::vector<float>(blocks, 0.0f));
+        for (std::size_t k = 0; k < n; ++k) {
+            sorted_scale_[k] = scale[order[k]];
+            table_[0][k / kBlock] = std::max(table_[0][k / kBlock], sorted_scale_[k]);
+        }
+        // Level l: the largest of 2^l blocks from b.
+        for (std::size_t span = 2; span <= blocks; span *= 2) {
+            const std::vector<float>& below = table_.back();
+            std::vector<float> level(blocks - span + 1);
+            for (std::size_t b = 0; b < level.size(); ++b) level[b] = std::max(below[b], below[b + span / 2]);
+            table_.push_back(std::move(level));
+        }
+    }
+
+    /// The largest scale above `floor` within `rad` of q, or `floor` when there is none.
+    float MaxAbove(const Vec3f& q, float rad, float floor) const {
+        float m = floor;
+        if (!grid_.dense()) {
+            grid_.ForEachWithin(q, std::min(rad, grid_.cell()),
+                                [&](std::uint32_t j, const Vec3f&, float) { m = std::max(m, scale_[j]); });
+            return m;
+        }
+        const float r2 = rad * rad;
+        const Vec3f* sp = grid_.sorted_points();
+        const std::vector<float>& block_max = table_[0];
+        grid_.ForEachCandidateRun(q, rad, [&](std::uint32_t first, std::uint32_t last) {
+            if (BlocksMax(first / kBlock, (last - 1) / kBlock) <= m) return;
+            for (std::size_t k = first; k < last;) {
+                const std::size_t end = std::min<std::size_t>(last, (k / kBlock + 1) * kBlock);
+                if (block_max[k / kBlock] > m)
+                    for (std::size_t j = k; j < end; ++j)
+                        if (sorted_scale_[j] > m && (sp[j] - q).squaredNorm() <= r2) m = sorted_scale_[j];
+                k = end;
+            }
+        });
+        return m;
+    }
+
+private:
+    static constexpr std::size_t kBlock = 16;
+    // The largest scale in blocks b0..b1 (inclusive).
+    float BlocksMax(std::size_t b0, std::size_t b1) const {
+        const int l = std::bit_width(b1 - b0 + 1) - 1;
+        return std::max(table_[l][b0], table_[l][b1 + 1 - (std::size_t(1) << l)]);
+    }
+    const UniformGrid& grid_;
+    const std::vector<float>& scale_;
+    std::vector<float> sorted_scale_;
+    std::vector<std::vector<float>> table_;
+};
+
+namespace {
+// The gather scale of ball i (see ScaleMaxima), computed on first need and cached (the same value
+// whichever thread computes it). (A template so that it can take the surface's private Impl.)
+template <typename Impl>
+float BallReach(const Impl& im, std::size_t i) {
+    std::atomic<float>& cached = im.reach[i];
+    const float c = cached.load(std::memory_order_relaxed);
+    if (c > 0) return c;
+    const float hi = im.scale[i];
+    const float rad = im.opt.cutoff * hi + std::max(im.ball_radius[i], im.opt.ball_h * hi);
+    const float v = im.scale_maxima->MaxAbove(im.cloud.positions[i], rad, hi);
+    cached.store(v, std::memory_order_relaxed);
+    return v;
 }
 }  // namespace
 
@@ -235,6 +376,16 @@ void AaSurface::SetUpScales() {
     if (o.h == 0) o.h = (0.5f * kSurfaceScaleSpacings) * DefaultScale(density);
     if (!(o.h > 0)) throw Error(ErrorCode::kInvalidArgument, "cannot derive h from the cloud (all points coincide); pass h");
     if (o.precision == 0) o.precision = 1e-3f * o.h;
+    // The grid's cell-sorted points as x/y/z arrays (dense grids: the gathers and the adaptive
+    // scales read them), once.
+    const auto fill_sorted_xyz = [this] {
+        if (!impl_->grid->dense() || !impl_->sorted_x.empty()) return;
+        const std::size_t n = impl_->cloud.size();
+        const Vec3f* p = impl_->grid->sorted_points();
+        for (auto* v : {&impl_->sorted_x, &impl_->sorted_y, &impl_->sorted_z}) v->resize(n);
+        for (std::size_t i = 0; i < n; ++i)
+            impl_->sorted_x[i] = p[i].x(), impl_->sorted_y[i] = p[i].y(), impl_->sorted_z[i] = p[i].z();
+    };
     if (o.bandwidth == AaBandwidth::kFixed) {
         impl_->grid = std::make_unique<UniformGrid>(cloud.positions, o.cutoff * o.h);
     } else {
@@ -243,33 +394,22 @@ void AaSurface::SetUpScales() {
         float cell = o.cutoff * o.h;
         if (!UniformGrid::FitsDense(cloud.Bounds(), cloud.size(), cell)) cell *= kAdaptiveRange;
         impl_->grid = std::make_unique<UniformGrid>(cloud.positions, cell);
-        AdaptiveScales(*impl_->grid, cloud.positions, density, o.h, &impl_->scale);
+        fill_sorted_xyz();
+        AdaptiveScales(*impl_->grid, cloud.positions,
+                       {impl_->sorted_x.data(), impl_->sorted_y.data(), impl_->sorted_z.data()}, *impl_->kernels,
+                       density, o.h, &impl_->scale);
         const std::size_t n = cloud.size();
         impl_->inv_h2.resize(n);
         for (std::size_t i = 0; i < n; ++i) impl_->inv_h2[i] = 1.0f / (impl_->scale[i] * impl_->scale[i]);
         impl_->max_scale = *std::max_element(impl_->scale.begin(), impl_->scale.end());
         // Gather scale of ball i: the largest h_j within cutoff x h_i + rho_i (+ the ball_h
         // widening) of its centre; a point farther out would need a scale that large to reach a
-        // fit in the ball with a weight above exp(-cutoff^2).
-        impl_->reach.resize(n);
-        const UniformGrid& g = *impl_->grid;
-        tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 1024), [&](const tbb::blocked_range<std::size_t>& r) {
-            for (std::size_t i = r.begin(); i != r.end(); ++i) {
-                float m = impl_->scale[i];
-                const float rad = o.cutoff * m + std::max(impl_->ball_radius[i], o.ball_h * m);
-                g.ForEachWithin(cloud.positions[i], g.dense() ? rad : std::min(rad, g.cell()),
-                                [&](std::uint32_t j, const Vec3f&, float) { m = std::max(m, impl_->scale[j]); });
-                impl_->reach[i] = m;
-            }
-        });
+        // fit in the ball with a weight above exp(-cutoff^2). Computed per ball on first need.
+        impl_->scale_maxima = std::make_unique<ScaleMaxima>(*impl_->grid, impl_->scale);
+        impl_->reach.reset(new std::atomic<float>[n]);
+        for (std::size_t i = 0; i < n; ++i) impl_->reach[i].store(0.0f, std::memory_order_relaxed);
     }
-    if (impl_->grid->dense()) {
-        const std::size_t n = cloud.size();
-        const Vec3f* p = impl_->grid->sorted_points();
-        for (auto* v : {&impl_->sorted_x, &impl_->sorted_y, &impl_->sorted_z}) v->resize(n);
-        for (std::size_t i = 0; i < n; ++i)
-            impl_->sorted_x[i] = p[i].x(), impl_->sorted_y[i] = p[i].y(), impl_->sorted_z[i] = p[i].z();
-    }
+    fill_sorted_xyz();
     if (o.boundary > 0) {
         const float med = density.median_spacing > 0 ? density.median_spacing : 1.0f;
         impl_->boundary_unit = std::max(1.0f, kBoundarySpacings * density.median_spacing / o.h);
@@ -347,6 +487,8 @@ struct GatheredNormals {
     std::vector<float> x, y, z;
 };
 thread_local GatheredNormals tls_normals;
+// The adaptive weights' scaled distances d2_j / h_j^2 (GatherWeighted).
+thread_local std::vector<float> tls_scaled;
 
 // The sorted points and, when the surface has weight normals, their normals (else null), as
 // x/y/z arrays: what the superset is filled from.
@@ -442,7 +584,7 @@ void Gather(const UniformGrid& grid, const SortedPoints& sorted, const std::vect
 template <typename Impl>
 WeightedMoments GatherWeighted(const Impl& im, const Vec3f& o, float cutoff, std::int64_t ball, NeighborBatch& nb) {
     const AaOptions& opt = im.opt;
-    const float H = im.scale.empty() ? opt.h : ball >= 0 ? im.reach[std::size_t(ball)] : im.max_scale;
+    const float H = im.scale.empty() ? opt.h : ball >= 0 ? BallReach(im, std::size_t(ball)) : im.max_scale;
     const SortedPoints sorted{{im.sorted_x.data(), im.sorted_y.data(), im.sorted_z.data()},
                               {im.sorted_nx.data(), im.sorted_ny.data(), im.sorted_nz.data()},
                               !im.sorted_nx.empty()};
@@ -450,7 +592,22 @@ WeightedMoments GatherWeighted(const Impl& im, const Vec3f& o, float cutoff, std
     if (nb.size() < 3) return {};
     // nb.Weights(opt.h), through the kernels.
     if (im.scale.empty()) im.kernels->gauss_weights(nb.d2.data(), static_cast<float>(1.0 / (double(opt.h) * double(opt.h))), nb.w.data(), nb.size());
-    else nb.WeightsPerPoint(im.inv_h2.data(), cutoff * cutoff);
+    else {
+        // nb.WeightsPerPoint(inv_h2, cutoff^2), its exponentials through the kernels (the same
+        // bits: GaussWeights is elementwise): w_j = exp(-d2_j / h_j^2), 0 beyond cutoff x h_j.
+        const std::size_t n = nb.size();
+        std::vector<float>& scaled = tls_scaled;
+        if (scaled.size() < n + 8) scaled.resize(std::max<std::size_t>(1024, 2 * (n + 8)));
+        float* T = scaled.data();
+        float* W = nb.w.data();
+        const float* D = nb.d2.data();
+        const std::uint32_t* I = nb.index.data();
+        const float* inv_h2 = im.inv_h2.data();
+        const float cut2 = cutoff * cutoff;
+        for (std::size_t j = 0; j < n; ++j) T[j] = D[j] * inv_h2[I[j]];
+        im.kernels->gauss_weights(T, 1.0f, W, n);
+        for (std::size_t j = 0; j < n; ++j) W[j] = T[j] <= cut2 ? W[j] : 0.0f;
+    }
     if (ball >= 0 && !im.weight_normals.empty()) {
         // w_j *= exp(-c^2), c = (1 - n_j . n_ball) / sigma, through the kernels (fit_kernels.h).
         // The neighbours' normals came with them (tls_normals, filled by Gather).
@@ -495,11 +652,6 @@ bool AaSurface::FitAt(const Vec3d& r, Fit* fit, float cutoff, bool attributes, s
     impl_->kernels->poly_sums(nb.lx.data(), nb.ly.data(), nb.lz.data(), nb.w.data(), m, pf.inv_h(), sums);
     pf.AddSums(sums);
     if (!pf.Solve(&fit->g)) return false;
-    if (static FILE* dbgf = getenv("SURFEL_FITLOG") ? fopen(getenv("SURFEL_FITLOG"), "w") : nullptr; dbgf) {
-        double sx = 0, sy = 0, sz = 0, sw = 0, lx = 0, ly = 0, lz = 0; unsigned long long si = 0;
-        for (std::size_t j = 0; j < m; ++j) { sx += nb.x[j]; sy += nb.y[j]; sz += nb.z[j]; sw += nb.w[j]; si = si * 31 + nb.index[j]; lx += nb.lx[j]; ly += nb.ly[j]; lz += nb.lz[j]; }
-        fprintf(dbgf, "%a %a %a %zu | %a %a %a %a %llu | %a %a %a | %a %a %a %a %a %a | %a %a %a\n", r.x(), r.y(), r.z(), m, sx, sy, sz, sw, si, lx, ly, lz, fit->g.c[0], fit->g.c[1], fit->g.c[2], fit->g.c[3], fit->g.c[4], fit->g.c[5], fit->frame.n.x(), fit->frame.n.y(), fit->frame.n.z());
-    }
     fit->valid = true;
     if (!attributes) return true;
     fit->normal_ref = WeightedNormal(cloud, nb);
@@ -559,7 +711,6 @@ bool AaSurface::CenterFit(std::uint32_t ball, Fit* out, AaCounters* counters) co
         unpack(entry);
         return true;
     }
-    ++counters->evaluations;
     CenterEntry fresh{};
     const bool ok = FitAt(center, out, kCenterCutoff, false, ball);
     if (ok) {
@@ -567,12 +718,18 @@ bool AaSurface::CenterFit(std::uint32_t ball, Fit* out, AaCounters* counters) co
         for (int i = 0; i < 3; ++i) fresh.u[i] = static_cast<float>(out->frame.u[i]);
         for (int i = 0; i < 6; ++i) fresh.c[i] = static_cast<float>(out->g.c[i]);
     }
+    // (Another thread computing the same ball computes the same values: the fit is deterministic.)
+    // The thread that stores the entry counts the evaluation; one that computed it at the same
+    // time counts a cache hit, so that the counters, like the image, do not depend on the timing
+    // of the threads (each ball's centre fit is one evaluation, every other look-up a hit).
     std::uint8_t expected = 0;
     if (state.compare_exchange_strong(expected, 1, std::memory_order_acq_rel)) {
         entry = fresh;
         state.store(ok ? 2 : 3, std::memory_order_release);
+        ++counters->evaluations;
+    } else {
+        ++counters->cache_hits;
     }
-    // (Another thread computing the same ball computes the same values: the fit is deterministic.)
     if (!ok) return false;
     unpack(fresh);
     return true;
@@ -585,8 +742,6 @@ std::optional<AaHit> AaSurface::IntersectInBall(std::uint32_t ball, const Vec3d&
     const double rho = impl_->ball_radius[ball];
     const double rho2 = rho * rho * (1.0 + 1e-9);
     auto inside = [&](double t) { return t >= tmin && t <= tmax && (o + t * d - center).squaredNorm() <= rho2; };
-    if (static FILE* dbgb = getenv("SURFEL_FITLOG") ? fopen((std::string(getenv("SURFEL_FITLOG")) + ".b").c_str(), "w") : nullptr; dbgb)
-        fprintf(dbgb, "%u %a %a %a %a %a %a %a %a %a\n", ball, o.x(), o.y(), o.z(), d.x(), d.y(), d.z(), tmin, tmax, known_hit);
 
     // r_0: the ray against the ball centre's polynomial (section 5), cached per ball.
     // The same-sheet test below, decided before the centre fit: any root in [tmin, tmax] would

@@ -125,8 +125,11 @@ struct AaHit {
 
 /// Work counters, summed by the caller over threads.
 struct AaCounters {
-    std::uint64_t evaluations = 0;   ///< Support plane + polynomial fits computed.
-    std::uint64_t cache_hits = 0;    ///< Ball-centre polynomials reused.
+    /// Support plane + polynomial fits computed: every iteration's, and each ball's centre fit
+    /// once (two threads that computed it at the same time count one evaluation and one hit, so
+    /// the counters do not depend on the threads' timing).
+    std::uint64_t evaluations = 0;
+    std::uint64_t cache_hits = 0;    ///< Ball-centre polynomial look-ups that found (or lost the race to store) it.
     std::uint64_t iterations = 0;    ///< Section-4 iterations run.
     std::uint64_t converged = 0;     ///< Iterations that ended in a hit.
     void Add(const AaCounters& o) {

@@ -254,6 +254,13 @@ TEST(Render, RepeatedRendersAreByteIdenticalWithOneTwoAndEightThreads) {
                                   << ") channel " << r.image.channels[first % channels] << ": "
                                   << got[first] << " against " << want[first];
             EXPECT_EQ(r.stats.hits, reference.stats.hits);
+            // The work counters too: two threads that computed a ball's centre fit at the same
+            // time count one evaluation and one cache hit (they counted two evaluations once).
+            EXPECT_EQ(r.stats.shadow_rays, reference.stats.shadow_rays);
+            EXPECT_EQ(r.stats.surface.evaluations, reference.stats.surface.evaluations) << threads << " threads";
+            EXPECT_EQ(r.stats.surface.cache_hits, reference.stats.surface.cache_hits) << threads << " threads";
+            EXPECT_EQ(r.stats.surface.iterations, reference.stats.surface.iterations);
+            EXPECT_EQ(r.stats.surface.converged, reference.stats.surface.converged);
         }
 }
 
