@@ -254,8 +254,10 @@ std::array<Vec3d, 26> VoteDirections() {
 // several points per direction outvote such points. A vote weaker than kSeedVoteTie per
 // direction (a flat or nearly flat open sheet, whose votes along d and -d cancel) falls back to
 // CGAL's rule (mst_orient_normals): the normal at the point of largest z points up.
-double OutwardVote(std::span<const Vec3f> pts, std::span<const Vec3f> normals, std::span<const std::uint32_t> comp,
-                   std::uint32_t top) {
+// `negated` says which of `normals` stand turned over.
+double OutwardVote(std::span<const Vec3f> pts, std::span<const Vec3f> normals, std::span<const std::uint8_t> negated,
+                   std::span<const std::uint32_t> comp, std::uint32_t top) {
+    const auto normal = [&](std::uint32_t i) -> Vec3f { return negated[i] ? Vec3f(-normals[i]) : normals[i]; };
     static const std::array<Vec3d, 26> kDirections = VoteDirections();
     const std::size_t m = std::min<std::size_t>(kSeedVotePoints, comp.size());
     // Per direction, the m least (height, index) pairs in increasing order — what a partial_sort
@@ -303,11 +305,11 @@ double OutwardVote(std::span<const Vec3f> pts, std::span<const Vec3f> normals, s
     double vote = 0;
     for (std::size_t k = 0; k < kDirs; ++k) {
         double sum = 0;
-        for (std::size_t j = 0; j < m; ++j) sum += normals[least.l[k][j].second].cast<double>().dot(kDirections[k]);
+        for (std::size_t j = 0; j < m; ++j) sum += normal(least.l[k][j].second).cast<double>().dot(kDirections[k]);
         vote += sum / static_cast<double>(m);
     }
     if (std::abs(vote) >= kSeedVoteTie * static_cast<double>(kDirections.size())) return vote;
-    return normals[top].z();
+    return normal(top).z();
 }
 
 // Orientation over the graph of the first kk columns of `knn` (rows sorted by distance).
@@ -395,7 +397,8 @@ std::size_t OrientOverGraph(std::span<const Vec3f> pts, std::vector<Vec3f>& norm
         float best = std::numeric_limits<float>::infinity();  // least cost of an edge from the tree
         std::uint32_t from = UINT32_MAX;                      // that edge's tree end
         std::uint32_t slot = UINT32_MAX;                      // the point's place in `heap`
-        std::uint32_t visited = 0;                            // in the tree
+        std::uint8_t visited = 0;                             // in the tree
+        std::uint8_t sign = 0;  // of the estimates' ni . nj along that edge: 1 negative, 2 positive, 0 neither
     };
     std::vector<Frontier> state(n);
     // The heap holds each entry's key beside its point, so that its comparisons read no
@@ -445,7 +448,11 @@ std::size_t OrientOverGraph(std::span<const Vec3f> pts, std::vector<Vec3f>& norm
     // 1 - |ni . nj| plus the edge's tilt out of the two tangent planes (an edge across a thin part
     // joins antiparallel normals, which the plain cost finds cheapest). It does not depend on the
     // normals' signs, which the propagation changes.
+    // With it, the sign of the estimates' dot product along the edge: the propagation's test of
+    // the signed normals' dot product is this sign, reversed where `from` stands turned over (a
+    // negation is exact), so the serial loop reads no normal.
     std::vector<float> edge_cost(adj.size());
+    std::vector<std::uint8_t> edge_sign(adj.size());
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 1024), [&](const tbb::blocked_range<std::size_t>& r) {
         for (std::size_t u = r.begin(); u != r.end(); ++u)
             for (std::uint32_t e = start[u]; e < start[u + 1]; ++e) {
@@ -454,7 +461,9 @@ std::size_t OrientOverGraph(std::span<const Vec3f> pts, std::vector<Vec3f>& norm
                 const float len = edge.norm();
                 const float tilt =
                     len > 0 ? 0.5f * (std::abs(edge.dot(normals[u])) + std::abs(edge.dot(normals[v]))) / len : 0.0f;
-                edge_cost[e] = 1.0f - std::abs(normals[u].dot(normals[v])) + crossing_weight * tilt;
+                const float dot = normals[u].dot(normals[v]);
+                edge_cost[e] = 1.0f - std::abs(dot) + crossing_weight * tilt;
+                edge_sign[e] = dot < 0 ? 1 : dot > 0 ? 2 : 0;
             }
     });
     auto push_edges = [&](std::uint32_t u) {
@@ -466,6 +475,7 @@ std::size_t OrientOverGraph(std::span<const Vec3f> pts, std::vector<Vec3f>& norm
             if (cost < f.best || (cost == f.best && u < f.from)) {
                 f.best = cost;
                 f.from = u;
+                f.sign = edge_sign[e];
                 if (f.slot == UINT32_MAX) {
                     heap.emplace_back();
                     sift_up(heap.size() - 1, Entry{cost, v});
@@ -484,22 +494,22 @@ std::size_t OrientOverGraph(std::span<const Vec3f> pts, std::vector<Vec3f>& norm
         state[root].visited = 1;
         push_edges(root);
         while (!heap.empty()) {
-            const std::uint32_t to = pop(), from = state[to].from;
-            state[to].visited = 1;
-            if (normals[from].dot(normals[to]) < 0) {
-                normals[to] = -normals[to];
-                negated[to] ^= 1;
-            }
+            const std::uint32_t to = pop();
+            Frontier& t = state[to];
+            t.visited = 1;
+            // normals[from] . normals[to] < 0, normals[to] not yet turned
+            if (t.sign == (negated[t.from] ? 2 : 1)) negated[to] = 1;
             push_edges(to);
             if ((++done & 0xFFFF) == 0) tracker.Advance(65536.0);
         }
         const std::span<const std::uint32_t> comp(members.data() + c.first, c.count);
-        if (OutwardVote(pts, normals, comp, root) < 0)
-            for (std::uint32_t i : comp) {
-                normals[i] = -normals[i];
-                negated[i] ^= 1;
-            }
+        if (OutwardVote(pts, normals, negated, comp, root) < 0)
+            for (std::uint32_t i : comp) negated[i] ^= 1;
     }
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 16384), [&](const tbb::blocked_range<std::size_t>& r) {
+        for (std::size_t i = r.begin(); i != r.end(); ++i)
+            if (negated[i]) normals[i] = -normals[i];
+    });
     for (std::uint8_t f : negated) flips += f;
     if (flipped) *flipped = flips;
     return comps.size();
