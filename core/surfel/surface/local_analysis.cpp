@@ -2,6 +2,7 @@
 
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
+#include <tbb/parallel_reduce.h>
 
 #include <Eigen/Eigenvalues>
 #include <algorithm>
@@ -253,38 +254,62 @@ std::array<Vec3d, 26> VoteDirections() {
 // several points per direction outvote such points. A vote weaker than kSeedVoteTie per
 // direction (a flat or nearly flat open sheet, whose votes along d and -d cancel) falls back to
 // CGAL's rule (mst_orient_normals): the normal at the point of largest z points up.
-double OutwardVote(std::span<const Vec3f> pts, std::span<const Vec3f> normals, std::span<const std::uint32_t> comp,
-                   std::uint32_t top) {
+// `negated` says which of `normals` stand turned over.
+double OutwardVote(std::span<const Vec3f> pts, std::span<const Vec3f> normals, std::span<const std::uint8_t> negated,
+                   std::span<const std::uint32_t> comp, std::uint32_t top) {
+    const auto normal = [&](std::uint32_t i) -> Vec3f { return negated[i] ? Vec3f(-normals[i]) : normals[i]; };
     static const std::array<Vec3d, 26> kDirections = VoteDirections();
     const std::size_t m = std::min<std::size_t>(kSeedVotePoints, comp.size());
     // Per direction, the m least (height, index) pairs in increasing order — what a partial_sort
     // of every pair gives (the pairs are distinct) — in one pass over the points for all
     // directions, each kept sorted by insertion: most heights fail the one comparison with their
     // direction's m-th (26 partial_sorts were 29 M of the orientation's serial instructions on
-    // the bunny, 26 passes 25 M).
+    // the bunny, 26 passes 25 M). A large component's points are split between the threads and
+    // the parts' lists merged by the same insertion: the m least of the union, whatever the split.
     constexpr std::size_t kDirs = std::tuple_size_v<decltype(kDirections)>;
-    std::array<std::array<std::pair<double, std::uint32_t>, kSeedVotePoints>, kDirs> least;
-    std::array<std::size_t, kDirs> filled{};
-    for (const std::uint32_t i : comp) {
-        const Vec3d p = pts[i].cast<double>();
-        for (std::size_t k = 0; k < kDirs; ++k) {
-            const std::pair<double, std::uint32_t> h{-p.dot(kDirections[k]), i};
-            auto& l = least[k];
+    struct Least {
+        std::array<std::array<std::pair<double, std::uint32_t>, kSeedVotePoints>, kDirs> l;
+        std::array<std::size_t, kDirs> filled{};
+        void Insert(std::size_t k, const std::pair<double, std::uint32_t>& h, std::size_t m) {
+            auto& lk = l[k];
             if (filled[k] < m) ++filled[k];
-            else if (!(h < l[m - 1])) continue;
+            else if (!(h < lk[m - 1])) return;
             std::size_t s = filled[k] - 1;  // the new slot, or the m-th (dropped) when full
-            for (; s > 0 && h < l[s - 1]; --s) l[s] = l[s - 1];
-            l[s] = h;
+            for (; s > 0 && h < lk[s - 1]; --s) lk[s] = lk[s - 1];
+            lk[s] = h;
         }
+    };
+    const auto add = [&](Least& least, std::span<const std::uint32_t> part) {
+        for (const std::uint32_t i : part) {
+            const Vec3d p = pts[i].cast<double>();
+            for (std::size_t k = 0; k < kDirs; ++k) least.Insert(k, {-p.dot(kDirections[k]), i}, m);
+        }
+    };
+    constexpr std::size_t kVoteGrain = 16384;  // points per part (the bunny's ~35 k: two parts)
+    Least least;
+    if (comp.size() < 2 * kVoteGrain) {
+        add(least, comp);
+    } else {
+        least = tbb::parallel_reduce(
+            tbb::blocked_range<std::size_t>(0, comp.size(), kVoteGrain), Least{},
+            [&](const tbb::blocked_range<std::size_t>& r, Least part) {
+                add(part, comp.subspan(r.begin(), r.size()));
+                return part;
+            },
+            [&](Least a, const Least& b) {
+                for (std::size_t k = 0; k < kDirs; ++k)
+                    for (std::size_t j = 0; j < b.filled[k]; ++j) a.Insert(k, b.l[k][j], m);
+                return a;
+            });
     }
     double vote = 0;
     for (std::size_t k = 0; k < kDirs; ++k) {
         double sum = 0;
-        for (std::size_t j = 0; j < m; ++j) sum += normals[least[k][j].second].cast<double>().dot(kDirections[k]);
+        for (std::size_t j = 0; j < m; ++j) sum += normal(least.l[k][j].second).cast<double>().dot(kDirections[k]);
         vote += sum / static_cast<double>(m);
     }
     if (std::abs(vote) >= kSeedVoteTie * static_cast<double>(kDirections.size())) return vote;
-    return normals[top].z();
+    return normal(top).z();
 }
 
 // Orientation over the graph of the first kk columns of `knn` (rows sorted by distance).
@@ -366,30 +391,41 @@ std::size_t OrientOverGraph(std::span<const Vec3f> pts, std::vector<Vec3f>& norm
     // key lowered when a cheaper edge reaches it: the order of a heap of every improving edge
     // (cost, to, from) with stale entries skipped, since a point's least entry is its best edge
     // and `to` is unique per point, with a fraction of the heap traffic.
-    std::vector<char> visited(n, 0);
-    std::vector<float> best(n, std::numeric_limits<float>::infinity());
-    std::vector<std::uint32_t> best_from(n, UINT32_MAX);
-    std::vector<std::uint32_t> heap;                   // points, a binary min-heap by (best, index)
-    std::vector<std::uint32_t> slot(n, UINT32_MAX);    // each point's place in `heap`
-    const auto before = [&](std::uint32_t a, std::uint32_t b) { return best[a] < best[b] || (best[a] == best[b] && a < b); };
-    const auto place = [&](std::size_t i, std::uint32_t v) {
-        heap[i] = v;
-        slot[v] = static_cast<std::uint32_t>(i);
+    // Each point's frontier state in one record (one cache line touched per edge instead of four
+    // arrays' lines: the propagation's reads are random over the points).
+    struct Frontier {
+        float best = std::numeric_limits<float>::infinity();  // least cost of an edge from the tree
+        std::uint32_t from = UINT32_MAX;                      // that edge's tree end
+        std::uint32_t slot = UINT32_MAX;                      // the point's place in `heap`
+        std::uint8_t visited = 0;                             // in the tree
+        std::uint8_t sign = 0;  // of the estimates' ni . nj along that edge: 1 negative, 2 positive, 0 neither
     };
-    const auto sift_up = [&](std::size_t i) {
-        const std::uint32_t v = heap[i];
+    std::vector<Frontier> state(n);
+    // The heap holds each entry's key beside its point, so that its comparisons read no
+    // per-point array.
+    struct Entry {
+        float best;
+        std::uint32_t v;
+        bool operator<(const Entry& o) const { return best < o.best || (best == o.best && v < o.v); }
+    };
+    std::vector<Entry> heap;  // a binary min-heap by (best, index)
+    const auto place = [&](std::size_t i, const Entry& x) {
+        heap[i] = x;
+        state[x.v].slot = static_cast<std::uint32_t>(i);
+    };
+    const auto sift_up = [&](std::size_t i, const Entry x) {
         while (i > 0) {
             const std::size_t up = (i - 1) / 2;
-            if (!before(v, heap[up])) break;
+            if (!(x < heap[up])) break;
             place(i, heap[up]);
             i = up;
         }
-        place(i, v);
+        place(i, x);
     };
     const auto pop = [&] {
-        const std::uint32_t top = heap[0];
-        slot[top] = UINT32_MAX;
-        const std::uint32_t v = heap.back();
+        const std::uint32_t top = heap[0].v;
+        state[top].slot = UINT32_MAX;
+        const Entry x = heap.back();
         heap.pop_back();
         if (!heap.empty()) {
             std::size_t i = 0;
@@ -397,12 +433,12 @@ std::size_t OrientOverGraph(std::span<const Vec3f> pts, std::vector<Vec3f>& norm
             for (;;) {
                 std::size_t c = 2 * i + 1;
                 if (c >= size) break;
-                if (c + 1 < size && before(heap[c + 1], heap[c])) ++c;
-                if (!before(heap[c], v)) break;
+                if (c + 1 < size && heap[c + 1] < heap[c]) ++c;
+                if (!(heap[c] < x)) break;
                 place(i, heap[c]);
                 i = c;
             }
-            place(i, v);
+            place(i, x);
         }
         return top;
     };
@@ -412,7 +448,11 @@ std::size_t OrientOverGraph(std::span<const Vec3f> pts, std::vector<Vec3f>& norm
     // 1 - |ni . nj| plus the edge's tilt out of the two tangent planes (an edge across a thin part
     // joins antiparallel normals, which the plain cost finds cheapest). It does not depend on the
     // normals' signs, which the propagation changes.
+    // With it, the sign of the estimates' dot product along the edge: the propagation's test of
+    // the signed normals' dot product is this sign, reversed where `from` stands turned over (a
+    // negation is exact), so the serial loop reads no normal.
     std::vector<float> edge_cost(adj.size());
+    std::vector<std::uint8_t> edge_sign(adj.size());
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 1024), [&](const tbb::blocked_range<std::size_t>& r) {
         for (std::size_t u = r.begin(); u != r.end(); ++u)
             for (std::uint32_t e = start[u]; e < start[u + 1]; ++e) {
@@ -421,22 +461,26 @@ std::size_t OrientOverGraph(std::span<const Vec3f> pts, std::vector<Vec3f>& norm
                 const float len = edge.norm();
                 const float tilt =
                     len > 0 ? 0.5f * (std::abs(edge.dot(normals[u])) + std::abs(edge.dot(normals[v]))) / len : 0.0f;
-                edge_cost[e] = 1.0f - std::abs(normals[u].dot(normals[v])) + crossing_weight * tilt;
+                const float dot = normals[u].dot(normals[v]);
+                edge_cost[e] = 1.0f - std::abs(dot) + crossing_weight * tilt;
+                edge_sign[e] = dot < 0 ? 1 : dot > 0 ? 2 : 0;
             }
     });
     auto push_edges = [&](std::uint32_t u) {
         for (std::uint32_t e = start[u]; e < start[u + 1]; ++e) {
             const std::uint32_t v = adj[e];
-            if (visited[v]) continue;
+            Frontier& f = state[v];
+            if (f.visited) continue;
             const float cost = edge_cost[e];
-            if (cost < best[v] || (cost == best[v] && u < best_from[v])) {
-                best[v] = cost;
-                best_from[v] = u;
-                if (slot[v] == UINT32_MAX) {
-                    heap.push_back(v);
-                    sift_up(heap.size() - 1);
+            if (cost < f.best || (cost == f.best && u < f.from)) {
+                f.best = cost;
+                f.from = u;
+                f.sign = edge_sign[e];
+                if (f.slot == UINT32_MAX) {
+                    heap.emplace_back();
+                    sift_up(heap.size() - 1, Entry{cost, v});
                 } else {
-                    sift_up(slot[v]);  // a lower key (or the same key from a lower `from`)
+                    sift_up(f.slot, Entry{cost, v});  // a lower key (or the same key from a lower `from`)
                 }
             }
         }
@@ -447,25 +491,25 @@ std::size_t OrientOverGraph(std::span<const Vec3f> pts, std::vector<Vec3f>& norm
         // component's sign is settled afterwards by the vote (the tree does not depend on signs,
         // so this equals seeding the root with the sign the vote picks).
         const std::uint32_t root = c.top;
-        visited[root] = 1;
+        state[root].visited = 1;
         push_edges(root);
         while (!heap.empty()) {
-            const std::uint32_t to = pop(), from = best_from[to];
-            visited[to] = 1;
-            if (normals[from].dot(normals[to]) < 0) {
-                normals[to] = -normals[to];
-                negated[to] ^= 1;
-            }
+            const std::uint32_t to = pop();
+            Frontier& t = state[to];
+            t.visited = 1;
+            // normals[from] . normals[to] < 0, normals[to] not yet turned
+            if (t.sign == (negated[t.from] ? 2 : 1)) negated[to] = 1;
             push_edges(to);
             if ((++done & 0xFFFF) == 0) tracker.Advance(65536.0);
         }
         const std::span<const std::uint32_t> comp(members.data() + c.first, c.count);
-        if (OutwardVote(pts, normals, comp, root) < 0)
-            for (std::uint32_t i : comp) {
-                normals[i] = -normals[i];
-                negated[i] ^= 1;
-            }
+        if (OutwardVote(pts, normals, negated, comp, root) < 0)
+            for (std::uint32_t i : comp) negated[i] ^= 1;
     }
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 16384), [&](const tbb::blocked_range<std::size_t>& r) {
+        for (std::size_t i = r.begin(); i != r.end(); ++i)
+            if (negated[i]) normals[i] = -normals[i];
+    });
     for (std::uint8_t f : negated) flips += f;
     if (flipped) *flipped = flips;
     return comps.size();
