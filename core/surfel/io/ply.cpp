@@ -7,6 +7,8 @@
 #include <cstring>
 #include <optional>
 #include <sstream>
+#include <system_error>
+#include <thread>
 
 #include "surfel/base/error.h"
 #include "surfel/io/file_bytes.h"
@@ -331,7 +333,26 @@ struct PositionStream {
         }
         bounds = box;
     }
+
+    // Appends `later`, which streamed the records after this one's (the same bits as one stream:
+    // the lower index of a non-finite coordinate wins, and cwiseMin / cwiseMax keep the earlier
+    // of equal values, as Extend does record by record).
+    void Merge(const PositionStream& later) {
+        if (first_bad != UINT64_MAX) return;
+        if (later.first_bad != UINT64_MAX) {
+            first_bad = later.first_bad;
+            bad_value = later.bad_value;
+            return;
+        }
+        bounds.min = bounds.min.cwiseMin(later.bounds.min);
+        bounds.max = bounds.max.cwiseMax(later.bounds.max);
+    }
 };
+
+// A streamed element of at least this many blocks (4 MiB) is read in two halves, the second on a
+// thread of its own (the upload check runs after the last byte, while the client waits): a fixed
+// split, so the answer never depends on the number of cores.
+constexpr std::uint64_t kSplitBlocks = 64;
 
 class BodyReader {
 public:
@@ -400,11 +421,48 @@ private:
         const std::size_t rec = e.FixedSize();
         const std::uint64_t n = e.count;
         if (rec > 0 && n > remaining() / rec) Truncated(e, remaining() / rec);
+        const std::uint64_t block = BlockRecords(e);
+        if (stream && rec > 0 && n / block >= kSplitBlocks) {
+            // The second half into a scratch block of its own: the sinks point into `stream`'s.
+            const std::uint64_t mid = n / block / 2 * block;
+            PositionStream second;
+            second.scratch.resize(stream->scratch.size());
+            const float* from = stream->scratch.front().data();
+            float* to = second.scratch.front().data();
+            std::vector<Sink> second_sinks = sinks;
+            for (Sink& s : second_sinks)
+                if (s.f) s.f = to + (s.f - from);
+            const auto read_second = [&] { ReadBlocks(e, second_sinks, mid, n, &second); };
+            struct Joiner {  // joined on every way out (a joinable std::thread must not be destroyed)
+                std::thread thread;
+                ~Joiner() {
+                    if (thread.joinable()) thread.join();
+                }
+            } second_half;
+            try {
+                second_half.thread = std::thread(read_second);
+            } catch (const std::system_error&) {  // no thread to be had: both halves here
+            }
+            ReadBlocks(e, sinks, 0, mid, stream);
+            if (second_half.thread.joinable()) second_half.thread.join();
+            else read_second();
+            stream->Merge(second);
+        } else {
+            ReadBlocks(e, sinks, 0, n, stream);
+        }
+        pos_ += rec * n;
+    }
+
+    // Records [first, last) of a fixed-size binary element (first a multiple of the block).
+    void ReadBlocks(const Element& e, const std::vector<Sink>& sinks, std::uint64_t first, std::uint64_t last,
+                    PositionStream* stream) const {
+        const std::size_t rec = e.FixedSize();
+        const std::uint64_t n = last;
         const char* base = data_.data() + pos_;
         // Block by block (about 64 KiB of records each), every column of a block while it is in
         // the cache: one pass over the bytes instead of one per property.
         const std::uint64_t block = BlockRecords(e);  // `stream`'s scratch holds one
-        for (std::uint64_t b = 0; rec > 0 && b < n; b += block) {
+        for (std::uint64_t b = first; rec > 0 && b < n; b += block) {
             const std::size_t m = static_cast<std::size_t>(std::min(block, n - b));
             std::size_t off = 0;
             for (std::size_t k = 0; k < e.props.size(); ++k) {
@@ -420,7 +478,6 @@ private:
             }
             if (stream) stream->Take(m, b);
         }
-        pos_ += rec * n;
     }
 
     void ReadBinaryRecord(const Element& e, std::uint64_t i, const std::vector<Sink>& sinks, FaceSink* faces,

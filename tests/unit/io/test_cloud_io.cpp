@@ -4,6 +4,8 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <cmath>
+#include <cstring>
 #include <filesystem>
 #include <limits>
 #include <optional>
@@ -223,6 +225,34 @@ TEST(InspectCloudFile, StreamedBinaryPositionsAgreeWithTheFullParse) {
     EXPECT_EQ(s.bounds.min, cloud.Bounds().min);
     EXPECT_EQ(s.bounds.max, cloud.Bounds().max);
     EXPECT_EQ(s.attributes, std::vector<std::string>{"normals"});
+}
+
+// At 64 blocks and more the streamed positions are read in two halves, the second on another
+// thread: the same answers as one pass, to the bit (the sign of a zero at the bounds included),
+// and a non-finite coordinate in either half, or in both, named as the full parse names it.
+TEST(InspectCloudFile, StreamedHalvesAgreeWithOnePassToTheBit) {
+    ShapeOptions o;
+    o.points = 66 * 2730 + 17;  // 66 blocks of 24-byte records and a short one; the second half from 32 * 2730
+    o.normals = true;
+    PointCloud cloud = SampleShape(Shape::kTorus, o);
+    const std::uint64_t mid = 33 * 2730;
+    // Zeros of both signs tie at the lower x bound, one in each half: a pass keeps the first.
+    for (Vec3f& p : cloud.positions) p.x() = std::abs(p.x()) + 1.0f;
+    cloud.positions[100].x() = 0.0f;
+    cloud.positions[mid + 5].x() = -0.0f;
+    const std::string bytes = FormatPly(cloud);
+    ExpectSummaryMatchesFullParse(bytes, "halves.ply");
+    const PlySummary s = InspectPly(bytes, "halves.ply");
+    const BoundingBox b = cloud.Bounds();
+    EXPECT_EQ(s.points, cloud.size());
+    EXPECT_EQ(std::memcmp(s.bounds.min.data(), b.min.data(), sizeof(Vec3f)), 0);
+    EXPECT_EQ(std::memcmp(s.bounds.max.data(), b.max.data(), sizeof(Vec3f)), 0);
+    for (const std::uint64_t bad : {std::uint64_t{0}, mid - 1, mid, mid + 2730, cloud.size() - 1}) {
+        PointCloud c = cloud;
+        c.positions[bad].z() = std::numeric_limits<float>::infinity();
+        if (bad < mid) c.positions[mid + 1].y() = std::numeric_limits<float>::quiet_NaN();  // the first is named
+        ExpectSummaryMatchesFullParse(FormatPly(c), "halves-bad.ply");
+    }
 }
 
 // ---- Files ------------------------------------------------------------------------------------
