@@ -100,6 +100,29 @@ void UniformGrid::BuildSparse(std::span<const Vec3f> points) {
 }
 
 namespace {
+
+// The k-th smallest of v[0..s) (s >= k), or -1 when none qualifies (NaNs): the value with fewer
+// than k values below it and at least k at or below it (ties included). Counting is branch-free
+// and vectorises; an insertion sort of the k smallest cost 1.5x more, in mispredicted branches.
+// Each counted candidate also bounds the answer from below or above, so candidates outside the
+// bounds are not counted.
+inline float KthSmallestByRank(const float* v, std::size_t s, int k) {
+    float lower = -1.0f, upper = std::numeric_limits<float>::infinity();
+    for (std::size_t j = 0; j < s; ++j) {
+        const float c = v[j];
+        if (c < lower || c > upper) continue;
+        int less = 0, at_most = 0;
+#pragma omp simd reduction(+ : less, at_most)
+        for (std::size_t l = 0; l < s; ++l) {
+            less += v[l] < c ? 1 : 0;
+            at_most += v[l] <= c ? 1 : 0;
+        }
+        if (less < k && at_most >= k) return c;
+        if (at_most < k) lower = c;  // the k-th is above c
+        else upper = c;              // at least k at or below c, the k-th below c
+    }
+    return -1.0f;
+}
 // The first threshold of a point's k-nearest search, on the previous point's squared k-th distance
 // (1.2x the distance): when k candidates lie within it, the others need not be ranked (session 13:
 // the triangle-inequality bound alone keeps ~60 candidates a point for k = 16 on the merged scans).
@@ -206,30 +229,8 @@ std::vector<float> UniformGrid::KthNeighborDist2InBlock(int k) const {
                             if (s < static_cast<std::size_t>(k)) s = keep(b2);
                             F = K;
                         }
-                        // The k-th smallest by rank: v is it when fewer than k candidates are
-                        // below it and at least k are at or below it (ties included). Counting is
-                        // branch-free and vectorises; an insertion sort of the k smallest cost
-                        // 1.5x more, in mispredicted branches. Each counted candidate also
-                        // bounds the answer from below or above, so candidates outside the
-                        // bounds are not counted.
                         if (s < static_cast<std::size_t>(k)) continue;
-                        float kth = -1.0f, lower = -1.0f, upper = std::numeric_limits<float>::infinity();
-                        for (std::size_t j = 0; j < s; ++j) {
-                            const float v = F[j];
-                            if (v < lower || v > upper) continue;
-                            int less = 0, at_most = 0;
-#pragma omp simd reduction(+ : less, at_most)
-                            for (std::size_t l = 0; l < s; ++l) {
-                                less += F[l] < v ? 1 : 0;
-                                at_most += F[l] <= v ? 1 : 0;
-                            }
-                            if (less < k && at_most >= k) {
-                                kth = v;
-                                break;
-                            }
-                            if (at_most < k) lower = v;  // the k-th is above v
-                            else upper = v;              // at least k at or below v, k-th below v
-                        }
+                        const float kth = KthSmallestByRank(F, s, k);
                         if (!(kth >= 0.0f) || std::isinf(kth)) continue;
                         prev = p;
                         prev_rho = std::sqrt(kth);  // k real points lie this close: a valid bound
@@ -307,23 +308,7 @@ void UniformGrid::KnnInBlock(int k, std::uint32_t* indices, float* dist2, std::u
                         if (prev_rho >= 0.0f && guess < threshold) s = keep(guess);
                         if (s < static_cast<std::size_t>(k)) s = keep(threshold);
                         if (s < static_cast<std::size_t>(k)) continue;
-                        float kth = -1.0f, lower = -1.0f, upper = std::numeric_limits<float>::infinity();
-                        for (std::size_t j = 0; j < s; ++j) {
-                            const float v = FD[j];
-                            if (v < lower || v > upper) continue;
-                            int less = 0, at_most = 0;
-#pragma omp simd reduction(+ : less, at_most)
-                            for (std::size_t l = 0; l < s; ++l) {
-                                less += FD[l] < v ? 1 : 0;
-                                at_most += FD[l] <= v ? 1 : 0;
-                            }
-                            if (less < k && at_most >= k) {
-                                kth = v;
-                                break;
-                            }
-                            if (at_most < k) lower = v;  // the k-th is above v
-                            else upper = v;              // at least k at or below v, k-th below v
-                        }
+                        const float kth = KthSmallestByRank(FD, s, k);
                         if (!(kth >= 0.0f) || std::isinf(kth)) continue;
                         int count = 0, ties = 0;
                         for (std::size_t j = 0; j < s; ++j) {

@@ -118,6 +118,15 @@ struct Superset {
     std::vector<std::uint32_t> keep;  // scratch: positions of the accepted points
     std::size_t n = 0;
     int at[3] = {0, 0, 0};            // FillBlock's cell
+
+    /// Room for `need` points (doubling, at least 1024), keeping the first n.
+    void Reserve(std::size_t need) {
+        if (need <= index.size()) return;
+        const std::size_t cap = std::max<std::size_t>(1024, 2 * need);
+        for (auto* v : {&x, &y, &z, &d2}) v->resize(cap);
+        index.resize(cap);
+        keep.resize(cap);
+    }
 };
 thread_local Superset tls_superset;
 // ProjectAll over the cloud's own points: the 3 x 3 x 3 block of grid cells around the current
@@ -142,13 +151,7 @@ void FillSuperset(const UniformGrid& grid, std::uint64_t owner, const Vec3f& c, 
     const Vec3f* pts = grid.sorted_points();
     const std::uint32_t* idx = grid.sorted_indices();
     grid.ForEachCandidateRun(c, reach, [&](std::uint32_t first, std::uint32_t last) {
-        const std::size_t need = s.n + (last - first);
-        if (need > s.index.size()) {
-            const std::size_t cap = std::max<std::size_t>(1024, 2 * need);
-            for (auto* v : {&s.x, &s.y, &s.z, &s.d2}) v->resize(cap);
-            s.index.resize(cap);
-            s.keep.resize(cap);
-        }
+        s.Reserve(s.n + (last - first));
         std::size_t n = s.n;
         float *X = s.x.data(), *Y = s.y.data(), *Z = s.z.data();
         std::uint32_t* I = s.index.data();
@@ -178,13 +181,7 @@ void FillBlock(const UniformGrid& grid, std::uint64_t owner, const int at[3], Su
     const Vec3f* pts = grid.sorted_points();
     const std::uint32_t* idx = grid.sorted_indices();
     grid.ForEachBlockRun(at, [&](std::uint32_t first, std::uint32_t last) {
-        const std::size_t need = s.n + (last - first);
-        if (need > s.index.size()) {
-            const std::size_t cap = std::max<std::size_t>(1024, 2 * need);
-            for (auto* v : {&s.x, &s.y, &s.z, &s.d2}) v->resize(cap);
-            s.index.resize(cap);
-            s.keep.resize(cap);
-        }
+        s.Reserve(s.n + (last - first));
         std::size_t n = s.n;
         float *X = s.x.data(), *Y = s.y.data(), *Z = s.z.data();
         std::uint32_t* I = s.index.data();
