@@ -487,8 +487,6 @@ struct GatheredNormals {
     std::vector<float> x, y, z;
 };
 thread_local GatheredNormals tls_normals;
-// The adaptive weights' scaled distances d2_j / h_j^2 (GatherWeighted).
-thread_local std::vector<float> tls_scaled;
 
 // The sorted points and, when the surface has weight normals, their normals (else null), as
 // x/y/z arrays: what the superset is filled from.
@@ -592,22 +590,7 @@ WeightedMoments GatherWeighted(const Impl& im, const Vec3f& o, float cutoff, std
     if (nb.size() < 3) return {};
     // nb.Weights(opt.h), through the kernels.
     if (im.scale.empty()) im.kernels->gauss_weights(nb.d2.data(), static_cast<float>(1.0 / (double(opt.h) * double(opt.h))), nb.w.data(), nb.size());
-    else {
-        // nb.WeightsPerPoint(inv_h2, cutoff^2), its exponentials through the kernels (the same
-        // bits: GaussWeights is elementwise): w_j = exp(-d2_j / h_j^2), 0 beyond cutoff x h_j.
-        const std::size_t n = nb.size();
-        std::vector<float>& scaled = tls_scaled;
-        if (scaled.size() < n + 8) scaled.resize(std::max<std::size_t>(1024, 2 * (n + 8)));
-        float* T = scaled.data();
-        float* W = nb.w.data();
-        const float* D = nb.d2.data();
-        const std::uint32_t* I = nb.index.data();
-        const float* inv_h2 = im.inv_h2.data();
-        const float cut2 = cutoff * cutoff;
-        for (std::size_t j = 0; j < n; ++j) T[j] = D[j] * inv_h2[I[j]];
-        im.kernels->gauss_weights(T, 1.0f, W, n);
-        for (std::size_t j = 0; j < n; ++j) W[j] = T[j] <= cut2 ? W[j] : 0.0f;
-    }
+    else nb.WeightsPerPoint(im.inv_h2.data(), cutoff * cutoff, im.kernels->gauss_weights);
     if (ball >= 0 && !im.weight_normals.empty()) {
         // w_j *= exp(-c^2), c = (1 - n_j . n_ball) / sigma, through the kernels (fit_kernels.h).
         // The neighbours' normals came with them (tls_normals, filled by Gather).

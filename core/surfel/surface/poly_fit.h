@@ -108,14 +108,16 @@ struct NeighborBatch {
     }
     /// Per-point scales (AaBandwidth::kAdaptive): w_j = exp(-d2_j * inv_h2[index_j]), and 0 where
     /// d2_j * inv_h2[index_j] > cut2 (each point's own cutoff, so the weights do not depend on the
-    /// gather's radius as long as it reaches every point's cutoff).
-    void WeightsPerPoint(const float* inv_h2, float cut2) {
+    /// gather's radius as long as it reaches every point's cutoff). `gauss` computes the
+    /// exponentials: GaussWeights, or the run-time picked kernel of the same bits (fit_kernels.h).
+    void WeightsPerPoint(const float* inv_h2, float cut2,
+                         void (*gauss)(const float*, float, float*, std::size_t) = GaussWeights) {
         const std::size_t n = size();
         float* T = scaled.data();
         const float* D = d2.data();
         const std::uint32_t* I = index.data();
         for (std::size_t i = 0; i < n; ++i) T[i] = D[i] * inv_h2[I[i]];
-        GaussWeights(T, 1.0f, w.data(), n);
+        gauss(T, 1.0f, w.data(), n);
         float* W = w.data();
 #pragma omp simd
         for (std::size_t i = 0; i < n; ++i) W[i] = T[i] <= cut2 ? W[i] : 0.0f;
