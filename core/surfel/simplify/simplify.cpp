@@ -348,7 +348,7 @@ SimplifyResult Simplify(const PointCloud& input, const SimplifyOptions& options,
             clusters = detail::VoxelClustering(input.positions, options, tracker);
             break;
         case SimplifyMethod::kIterative:
-            clusters = detail::IterativeSimplification(input.positions, normals, input_knn.k ? &input_knn : nullptr,
+            clusters = detail::IterativeSimplification(input.positions, normals, std::move(input_knn),
                                                        report.normals_estimated, options, positions, tracker);
             break;
         case SimplifyMethod::kParticle: {

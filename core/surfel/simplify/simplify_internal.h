@@ -136,11 +136,12 @@ Clustering VoxelClustering(std::span<const Vec3f> points, const SimplifyOptions&
 /// Iterative point-pair contraction (notes 2.2): fills `positions` (one per cluster) and returns
 /// the clusters. `knn`: the points' nearest neighbours when the caller has them (rows nearest
 /// first, at least options.neighbors columns; the first options.neighbors make the graph), else
-/// null. `cluster_normals`: the normals are unoriented; give each cluster the sum of its members'
-/// normals turned to agree with its surviving point's (Clustering::normals) for BuildFromClusters
-/// to orient.
+/// an empty table (k = 0). Taken by value: it is released as soon as the graph is built, before
+/// the larger arrays of the contraction are first touched. `cluster_normals`: the normals are
+/// unoriented; give each cluster the sum of its members' normals turned to agree with its
+/// surviving point's (Clustering::normals) for BuildFromClusters to orient.
 Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<const Vec3f> normals,
-                                   const KnnTable* knn, bool cluster_normals, const SimplifyOptions& options,
+                                   KnnTable knn, bool cluster_normals, const SimplifyOptions& options,
                                    std::vector<Vec3f>& positions, ProgressTracker& progress);
 
 }  // namespace surfel::detail

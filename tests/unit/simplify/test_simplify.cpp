@@ -465,6 +465,25 @@ TEST(Simplify, IterativeContractsLikeTheReferenceQueue) {
     }
 }
 
+// Down to a handful of points every list outgrows its room in the pool many times: it then
+// takes over the removed point's room or moves to the pool's end (session 14: the pool keeps two
+// spare entries a list instead of its rows' repeats). The same contractions as the reference queue.
+TEST(Simplify, IterativeListsOutgrowingTheirRoomContractLikeTheReferenceQueue) {
+    ShapeOptions so;
+    so.points = 3000;
+    so.noise = 0.002;
+    so.normals = true;
+    const PointCloud cloud = SampleShape(Shape::kSphere, so);
+    for (const std::size_t target : {3u, 25u}) {
+        SCOPED_TRACE("target " + std::to_string(target));
+        const std::vector<Vec3f> ref = reference::IterativeSimplify(cloud.positions, cloud.normals, target, 6, 1e-3);
+        const PointCloud got = RunSimplify(cloud, SimplifyMethod::kIterative, target).cloud;
+        ASSERT_EQ(got.size(), target);
+        ASSERT_EQ(ref.size(), target);
+        for (std::size_t i = 0; i < target; ++i) EXPECT_EQ(got.positions[i], ref[i]) << i;
+    }
+}
+
 // The quadric minimiser's two shortcuts (full inverse when every eigenvalue passes, the top
 // eigenpair when only the largest does) give the point of the truncated pseudo-inverse by the
 // eigen solve: quadrics of planes whose normals spread in every direction, around one direction
