@@ -12,6 +12,7 @@
 #include <cmath>
 #include <limits>
 #include <numbers>
+#include <memory>
 #include <numeric>
 #include <optional>
 #include <utility>
@@ -445,9 +446,11 @@ std::optional<std::size_t> OrientByKruskal(std::span<const Vec3f> pts, std::vect
     std::vector<std::size_t> first(blocks + 1, 0);
     for (std::size_t b = 0; b < blocks; ++b) first[b + 1] = first[b] + part[b].size();
     const std::size_t m = first[blocks];
-    std::vector<Edge> edges(m), other(m);
+    // Left uninitialised (a vector's zeroing of both, 2 x 16 bytes an edge, was one thread's page
+    // faults): the copy and each pass write every entry, in parallel.
+    std::unique_ptr<Edge[]> edges(new Edge[m]), other(new Edge[m]);
     tbb::parallel_for(std::size_t(0), blocks, [&](std::size_t b) {
-        std::copy(part[b].begin(), part[b].end(), edges.begin() + static_cast<std::ptrdiff_t>(first[b]));
+        std::copy(part[b].begin(), part[b].end(), edges.get() + first[b]);
         std::vector<Edge>().swap(part[b]);
     });
     const auto key = [](float c) {
@@ -473,7 +476,7 @@ std::optional<std::size_t> OrientByKruskal(std::span<const Vec3f> pts, std::vect
         });
         edges.swap(other);
     }
-    other = {};
+    other.reset();
 
     // Kruskal's, with the check of each group of equal costs.
     std::vector<std::uint32_t> parent(n), rank(n, 0);
@@ -490,9 +493,9 @@ std::optional<std::size_t> OrientByKruskal(std::span<const Vec3f> pts, std::vect
     std::vector<std::uint32_t> tree;  // indices into `edges`
     tree.reserve(n);
     std::vector<std::uint8_t> useful;
-    for (std::size_t a = 0; a < edges.size() && tree.size() + 1 < n;) {  // n - 1 edges: one tree, done
+    for (std::size_t a = 0; a < m && tree.size() + 1 < n;) {  // n - 1 edges: one tree, done
         std::size_t b = a + 1;
-        while (b < edges.size() && edges[b].cost == edges[a].cost) ++b;
+        while (b < m && edges[b].cost == edges[a].cost) ++b;
         if (b == a + 1) {
             const std::uint32_t x = find(edges[a].lo), y = find(edges[a].hi);
             if (x != y) {
