@@ -58,7 +58,8 @@ struct SurfelImageCodecV1 {
     std::uint32_t abi;    ///< kSurfelImageCodecAbi.
     const char* backend;  ///< e.g. "OpenImageIO 2.4.7".
     /// Encodes `image` as `format` ("exr", "png"); for EXR, `compression` names the scheme
-    /// ("zip"). The bytes go to `sink`, a failure's message to `error`.
+    /// ("zip", or "zip:N" for zlib level N in 1..9, as OpenImageIO names it). The bytes go to
+    /// `sink`, a failure's message to `error`.
     int (*encode)(const char* format, const SurfelImageView* image, int storage,
                   const char* compression, SurfelImageSink sink, void* sink_context,
                   SurfelImageError error, void* error_context);

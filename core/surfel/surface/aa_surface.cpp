@@ -207,27 +207,31 @@ void AdaptiveScales(const UniformGrid& grid, std::span<const Vec3f> pts, const S
         tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 1024), [&](const tbb::blocked_range<std::size_t>& r) {
             std::vector<float> ox, oy, oz, od2;
             std::vector<std::uint32_t> oi;
+            std::vector<double> ow;
             for (std::size_t k = r.begin(); k != r.end(); ++k) {
                 const float hi = h * s[k], inv = 1.0f / (hi * hi);
                 const float radius = std::min(2.0f * hi, grid.cell()), r2 = radius * radius;
                 const Vec3f& q = sp[k];
-                double sw = 0, ss = 0;
+                // Every candidate run's neighbours first, then their weights w = exp(-d^2 inv) as
+                // std::exp gives them, four at a time (fit_kernels.h), then the sums in the same order.
+                std::size_t c = 0;
                 grid.ForEachCandidateRun(q, radius, [&](std::uint32_t first, std::uint32_t last) {
                     const std::size_t m = last - first;
-                    if (od2.size() < m + 8) {
-                        for (auto* v : {&ox, &oy, &oz, &od2}) v->resize(std::max<std::size_t>(1024, 2 * (m + 8)));
+                    if (od2.size() < c + m + 8) {
+                        for (auto* v : {&ox, &oy, &oz, &od2}) v->resize(std::max<std::size_t>(1024, 2 * (c + m + 8)));
                         oi.resize(od2.size());
                     }
-                    const std::size_t c = kernels.gather_within(sorted.x + first, sorted.y + first, sorted.z + first,
-                                                                place.data() + first, nullptr, m, q.x(), q.y(), q.z(),
-                                                                r2, ox.data(), oy.data(), oz.data(), od2.data(),
-                                                                oi.data(), nullptr);
-                    for (std::size_t j = 0; j < c; ++j) {
-                        const double w = std::exp(-double(od2[j]) * inv);
-                        sw += w;
-                        ss += w * s[oi[j]];
-                    }
+                    c += kernels.gather_within(sorted.x + first, sorted.y + first, sorted.z + first, place.data() + first,
+                                               nullptr, m, q.x(), q.y(), q.z(), r2, ox.data() + c, oy.data() + c,
+                                               oz.data() + c, od2.data() + c, oi.data() + c, nullptr);
                 });
+                if (ow.size() < c) ow.resize(od2.size());
+                kernels.gauss_weights_d(od2.data(), inv, ow.data(), c);
+                double sw = 0, ss = 0;
+                for (std::size_t j = 0; j < c; ++j) {
+                    sw += ow[j];
+                    ss += ow[j] * s[oi[j]];
+                }
                 t[k] = sw > 0 ? static_cast<float>(ss / sw) : s[k];
             }
         });

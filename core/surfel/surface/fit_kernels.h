@@ -44,6 +44,12 @@ using SquaredDistancesAroundFn = void (*)(const float* x, const float* y, const 
 using ToLocalFn = void (*)(const float* x, const float* y, const float* z, std::size_t n, const double* frame,
                            double* lx, double* ly, double* lz);
 
+/// The adaptive scales' smoothing weights: w[j] = exp(-double(d2[j]) * inv) in double, exp as the
+/// C library's exp. The AVX2 build computes four at once with glibc's exp algorithm (its FMA
+/// variant, which glibc itself runs on such a CPU) and is chosen only where it reproduces this
+/// process's exp to the bit on a probe (GaussWeightsDVectorised); elsewhere each weight calls exp.
+using GaussWeightsDFn = void (*)(const float* d2, float inv, double* w, std::size_t n);
+
 /// The normal-aware weights (AaOptions::normal_sigma): w[j] *= exp(-c^2), c = (1 - n_j . ref) * inv,
 /// n_j = (nx, ny, nz)[j] the neighbour's normal, in float, the dot as Eigen's x + (y + z), exp as
 /// the C library's expf. The AVX2 build computes eight at once with glibc's expf algorithm (the
@@ -80,6 +86,7 @@ struct Kernels {
     NormalFactorsFn normal_factors;
     GatherWithinFn gather_within;
     SelectWithinFn select_within;
+    GaussWeightsDFn gauss_weights_d;
     const char* isa;  ///< "avx2" or "baseline"
 };
 
@@ -90,5 +97,8 @@ const Kernels& Baseline();
 /// Whether Best().normal_factors is the eight-wide one (AVX2, FMA, and its exp agreed with
 /// expf on a probe of arguments when the kernels were chosen).
 bool NormalFactorsVectorised();
+/// Whether Best().gauss_weights_d is the four-wide one (AVX2, FMA, and its exp agreed with exp on a
+/// probe of arguments when the kernels were chosen).
+bool GaussWeightsDVectorised();
 
 }  // namespace surfel::fit_kernels

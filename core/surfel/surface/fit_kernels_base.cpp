@@ -24,6 +24,9 @@ void NormalFactors(const float* NX, const float* NY, const float* NZ, std::size_
 void NormalFactorsFma(const float* NX, const float* NY, const float* NZ, std::size_t n, const float* ref, float inv,
                       float* w);
 bool ExpMatchesLibm();
+void GaussWeightsD(const float* d2, float inv, double* w, std::size_t n);
+void GaussWeightsDFma(const float* d2, float inv, double* w, std::size_t n);
+bool ExpDMatchesLibm();
 std::size_t GatherWithinPacked(const float* X, const float* Y, const float* Z, const std::uint32_t* I,
                                const float* const* C, std::size_t n, float ox, float oy, float oz, float r2, float* OX,
                                float* OY, float* OZ, float* OD, std::uint32_t* OI, float* const* OC);
@@ -35,7 +38,8 @@ std::size_t SelectWithinPacked(const float* X, const float* Y, const float* Z, c
 const Kernels& Baseline() {
     static const Kernels k{&baseline::Moments, &baseline::PolySums, &baseline::SquaredDistances,
                            &baseline::GaussWeights, &baseline::SquaredDistancesAround, &baseline::ToLocal,
-                           &baseline::NormalFactors, &baseline::GatherWithin, &baseline::SelectWithin, "baseline"};
+                           &baseline::NormalFactors, &baseline::GatherWithin, &baseline::SelectWithin,
+                           &baseline::GaussWeightsD, "baseline"};
     return k;
 }
 
@@ -44,11 +48,14 @@ const Kernels& Best() {
         static Kernels k{&avx2::Moments,      &avx2::PolySums,
                          &avx2::SquaredDistances, &avx2::GaussWeights,
                          &avx2::SquaredDistancesAround, &avx2::ToLocal,
-                         &avx2::NormalFactors, &avx2::GatherWithinPacked, &avx2::SelectWithinPacked, "avx2"};
+                         &avx2::NormalFactors, &avx2::GatherWithinPacked, &avx2::SelectWithinPacked,
+                         &avx2::GaussWeightsD, "avx2"};
         if (PickKernelBuild() != KernelBuild::kAvx2) return Baseline();
 #if defined(__x86_64__) || defined(__i386__)
         // The eight-wide exp only where it is this process's expf to the bit.
         if (__builtin_cpu_supports("fma") && avx2::ExpMatchesLibm()) k.normal_factors = &avx2::NormalFactorsFma;
+        // The same for the four-wide exp in double.
+        if (__builtin_cpu_supports("fma") && avx2::ExpDMatchesLibm()) k.gauss_weights_d = &avx2::GaussWeightsDFma;
 #endif
         return k;
     }();
@@ -56,5 +63,6 @@ const Kernels& Best() {
 }
 
 bool NormalFactorsVectorised() { return Best().normal_factors == &avx2::NormalFactorsFma; }
+bool GaussWeightsDVectorised() { return Best().gauss_weights_d == &avx2::GaussWeightsDFma; }
 
 }  // namespace surfel::fit_kernels

@@ -139,7 +139,9 @@ Vec3f EstimateNormalAt(const KdTree& tree, std::size_t i, const NormalOptions& o
 ///
 /// Propagation: per connected component of the symmetric options.orient_k-neighbour graph, a
 /// minimum spanning tree (Prim's, from the component's point of largest z; ties by index, so
-/// thread-count independent), and every normal flipped to agree with its tree parent. The edge
+/// thread-count independent; where the least tree is unique, or its ties change no sign, Kruskal's
+/// over the edges sorted in parallel gives the same normals), and every normal flipped to agree
+/// with its tree parent. The edge
 /// cost is Hoppe's 1 - |n_i . n_j| plus options.orient_crossing_weight times the edge's mean tilt
 /// out of the two tangent planes, (|e . n_i| + |e . n_j|) / 2: where a thin part (a fin, a
 /// hand, a sleeve) is thinner than the neighbourhood, an edge across it joins two antiparallel
@@ -161,6 +163,17 @@ Vec3f EstimateNormalAt(const KdTree& tree, std::size_t i, const NormalOptions& o
 /// input. Calls options.Validate() first (only orient_k and orient_crossing_weight are used).
 std::size_t OrientNormals(const KdTree& tree, std::vector<Vec3f>& normals, const NormalOptions& options = {},
                           std::size_t* flipped = nullptr, const ProgressFn& progress = {});
+
+namespace detail {
+/// How OrientNormals builds its minimum spanning trees. kAuto: Kruskal's over the edges sorted in
+/// parallel wherever that gives the normals of Prim's trees (finite costs, and a unique least forest
+/// or ties that change no sign), Prim's otherwise; kPrim: Prim's always. Both give the same
+/// normals; for tests.
+enum class SpanningTrees { kAuto, kPrim };
+/// OrientNormals with the method chosen; `by_kruskal` (optional) says whether Kruskal's gave the trees.
+std::size_t OrientNormals(const KdTree& tree, std::vector<Vec3f>& normals, const NormalOptions& options,
+                          SpanningTrees method, std::size_t* flipped = nullptr, bool* by_kruskal = nullptr);
+}  // namespace detail
 
 /// Normal variation (notes 1.2): lambda'_1 of the covariance of the neighbours' normals.
 std::vector<float> NormalVariation(const KdTree& tree, std::span<const Vec3f> normals, int k = 16);

@@ -36,13 +36,14 @@ void Append(void* context, const void* data, std::size_t size) noexcept {
 }
 void Keep(void* context, const char* message) noexcept { *static_cast<std::string*>(context) = message; }
 
-std::string Encode(const SurfelImageCodecV1& codec, const Image& image, int storage, std::string* message) {
+std::string Encode(const SurfelImageCodecV1& codec, const Image& image, int storage, std::string* message,
+                   const char* compression = "zip") {
     std::vector<const char*> names;
     for (const std::string& c : image.channels) names.push_back(c.c_str());
     const SurfelImageView view{image.width, image.height, static_cast<int>(names.size()), names.data(),
                                image.ChannelIndex("A"), image.ChannelIndex("Z"), image.pixels.data()};
     std::string bytes;
-    const int status = codec.encode("exr", &view, storage, "zip", &Append, &bytes, &Keep, message);
+    const int status = codec.encode("exr", &view, storage, compression, &Append, &bytes, &Keep, message);
     return status == kSurfelImageOk ? bytes : std::string();
 }
 
@@ -101,16 +102,21 @@ TEST_F(ImageCodecs, TheExrPluginWritesTheBytesOfTheOpenImageIoPlugin) {
     // another order than the file's (alphabetical) one.
     const std::vector<Case> cases = {{320, 250, render}, {24, 16, render}, {17, 33, render}, {1, 1, render},
                                      {5, 3, {"Z"}},      {9, 7, {"N.Z", "R", "A", "B"}}};
+    // Each at OpenEXR's default zlib level and at the levels asked for by name ("zip:N").
     for (const Case& c : cases)
-        for (const int storage : {kSurfelStorageFloat, kSurfelStorageHalf}) {
-            const Image img = TestImage(c.width, c.height, c.channels);
-            std::string m1, m2;
-            const std::string a = Encode(*oiio_, img, storage, &m1), b = Encode(*exr_, img, storage, &m2);
-            ASSERT_FALSE(a.empty()) << m1;
-            ASSERT_FALSE(b.empty()) << m2;
-            EXPECT_EQ(a.size(), b.size()) << c.width << "x" << c.height << " storage " << storage;
-            EXPECT_TRUE(WithoutDate(a) == WithoutDate(b)) << c.width << "x" << c.height << " storage " << storage;
-        }
+        for (const int storage : {kSurfelStorageFloat, kSurfelStorageHalf})
+            for (const char* compression : {"zip", "zip:1", "zip:9"}) {
+                SCOPED_TRACE(::testing::Message() << c.width << "x" << c.height << " storage " << storage << " "
+                                                  << compression);
+                const Image img = TestImage(c.width, c.height, c.channels);
+                std::string m1, m2;
+                const std::string a = Encode(*oiio_, img, storage, &m1, compression),
+                                  b = Encode(*exr_, img, storage, &m2, compression);
+                ASSERT_FALSE(a.empty()) << m1;
+                ASSERT_FALSE(b.empty()) << m2;
+                EXPECT_EQ(a.size(), b.size());
+                EXPECT_TRUE(WithoutDate(a) == WithoutDate(b));
+            }
 }
 
 TEST_F(ImageCodecs, TheExrPluginRefusesWhatItDoesNotWrite) {
@@ -124,6 +130,12 @@ TEST_F(ImageCodecs, TheExrPluginRefusesWhatItDoesNotWrite) {
     EXPECT_EQ(exr_->encode("exr", &view, kSurfelStorageFloat, "piz", &Append, &bytes, &Keep, &message),
               kSurfelImageFailed);
     EXPECT_NE(message.find("piz"), std::string::npos) << message;
+    for (const char* level : {"zip:0", "zip:10", "zip:", "zipper"}) {
+        EXPECT_EQ(exr_->encode("exr", &view, kSurfelStorageFloat, level, &Append, &bytes, &Keep, &message),
+                  kSurfelImageFailed)
+            << level;
+        EXPECT_NE(message.find(level), std::string::npos) << message;
+    }
     EXPECT_TRUE(bytes.empty());
 }
 
@@ -134,7 +146,9 @@ TEST_F(ImageCodecs, EncodeImageWritesExrThatReadsBack) {
     EXPECT_NE(LoadImageCodec(ImageFormat::kPng).find("OpenImageIO"), std::string::npos);
     const Image img = TestImage(33, 20, {"R", "G", "B", "A", "Z", "N.X", "N.Y", "N.Z"});
     std::string message;
-    EXPECT_TRUE(WithoutDate(EncodeImage(img, ImageFormat::kExr)) == WithoutDate(Encode(*oiio_, img, kSurfelStorageFloat, &message)));
+    // (EncodeImage asks for ZIP at zlib level 1.)
+    EXPECT_TRUE(WithoutDate(EncodeImage(img, ImageFormat::kExr)) ==
+                WithoutDate(Encode(*oiio_, img, kSurfelStorageFloat, &message, "zip:1")));
     const std::string path = ::testing::TempDir() + "surfel_codecs_" + std::to_string(::getpid()) + ".exr";
     WriteImage(img, path);
     const Image back = ReadImage(path);

@@ -7,6 +7,8 @@
 
 #include <cmath>
 #include <cstring>
+#include <iterator>
+#include <limits>
 #include <random>
 #include <string>
 #include <vector>
@@ -155,6 +157,34 @@ TEST(FitKernels, NormalFactorsAreExpfToTheBit) {
             }
         }
     RecordProperty("normal_factors_vectorised", fit_kernels::NormalFactorsVectorised() ? "yes" : "no");
+}
+
+// The adaptive scales' weights exp(-d^2 inv) in double: both builds give std::exp's bits, on
+// arguments over the smoothing's range (d^2 inv in [0, 4]) and beyond, on sizes below, at and above
+// the vector width, and on the lanes glibc's fast path leaves (d^2 = 0, |x| < 2^-54, |x| >= 512,
+// infinity, NaN), which take the C library's exp.
+TEST(FitKernels, GaussWeightsDAreExpToTheBit) {
+    std::mt19937 rng(31);
+    std::uniform_real_distribution<float> unit(0.0f, 1.0f);
+    const std::size_t count = std::size_t(1) << 21;
+    std::vector<float> d2(count);
+    for (std::size_t j = 0; j < count; ++j) d2[j] = j % 7 == 6 ? 30.0f * unit(rng) : 4.0f * unit(rng);
+    const float specials[] = {0.0f, 1e-30f, 1e-20f, 1e-17f, 600.0f, 1e30f, std::numeric_limits<float>::infinity(),
+                              std::nanf(""), 5e-17f};
+    for (std::size_t j = 0; j < std::size(specials); ++j) d2[1000 + 5 * j] = specials[j];
+    for (const float inv : {1.0f, 0.37f, 2.5f, 1.0f / 3.0f})
+        for (const std::size_t n : {std::size_t(0), std::size_t(3), std::size_t(4), std::size_t(110), count}) {
+            std::vector<double> want(n);
+            for (std::size_t j = 0; j < n; ++j) want[j] = std::exp(-double(d2[j]) * inv);
+            for (const fit_kernels::Kernels* k : {&fit_kernels::Baseline(), &fit_kernels::Best()}) {
+                std::vector<double> w(n, -1.0);
+                k->gauss_weights_d(d2.data(), inv, w.data(), n);
+                for (std::size_t j = 0; j < n; ++j)
+                    ASSERT_TRUE(std::memcmp(&w[j], &want[j], sizeof(double)) == 0 || (std::isnan(w[j]) && std::isnan(want[j])))
+                        << k->isa << " inv " << inv << " d2 " << d2[j] << ": " << w[j] << " vs " << want[j];
+            }
+        }
+    RecordProperty("gauss_weights_d_vectorised", fit_kernels::GaussWeightsDVectorised() ? "yes" : "no");
 }
 
 // The gather's filter: both builds keep the same candidates, in order, with the offsets and

@@ -221,6 +221,95 @@ TEST(Orientation, FlatSheetPointsUp) {
     for (std::size_t i = 0; i < c.size(); ++i) ASSERT_GT(r.normals[i].z(), 0.99f) << i;
 }
 
+// Kruskal's trees over the edges sorted in parallel are Prim's wherever the least forest is
+// unique, or where its ties cannot change a sign: the same normals and counts from both methods, on
+// clouds with one and several components, with random input signs and with either edge cost;
+// where ties can change the signs, Prim's runs instead.
+TEST(Orientation, KruskalGivesPrimsTrees) {
+    struct Case {
+        std::string name;
+        PointCloud cloud;
+        float weight = NormalOptions{}.orient_crossing_weight;
+    };
+    std::vector<Case> cases;
+    for (Shape shape : {Shape::kSphere, Shape::kTorus, Shape::kBox}) {
+        ShapeOptions o;
+        o.points = 6000;
+        o.noise = 0.004;
+        cases.push_back({ShapeName(shape), SampleShape(shape, o)});
+    }
+    cases.push_back({"sphere, Hoppe's cost", cases[0].cloud, 0.0f});
+    {
+        PointCloud two = cases[0].cloud;  // two components
+        for (const Vec3f& p : cases[1].cloud.positions) two.positions.push_back(p + Vec3f(5, 0, 0));
+        cases.push_back({"two components", two});
+    }
+    for (Case& c : cases) {
+        SCOPED_TRACE(c.name);
+        KdTree tree(c.cloud.positions);
+        std::vector<Vec3f> normals = EstimateNormals(tree, {.orient = false}).normals;
+        std::uint64_t state = 11;
+        for (Vec3f& n : normals) {
+            state = state * 6364136223846793005ull + 1442695040888963407ull;
+            if (state >> 63) n = -n;
+        }
+        const NormalOptions opt{.orient_crossing_weight = c.weight};
+        std::vector<Vec3f> by_prim = normals, by_auto = normals;
+        std::size_t flipped_prim = 0, flipped_auto = 0;
+        bool kruskal = false;
+        const std::size_t comps_prim =
+            detail::OrientNormals(tree, by_prim, opt, detail::SpanningTrees::kPrim, &flipped_prim, &kruskal);
+        EXPECT_FALSE(kruskal);
+        const std::size_t comps_auto =
+            detail::OrientNormals(tree, by_auto, opt, detail::SpanningTrees::kAuto, &flipped_auto, &kruskal);
+        EXPECT_TRUE(kruskal);  // noisy estimates: no tie decides a tree
+        EXPECT_EQ(comps_auto, comps_prim);
+        EXPECT_EQ(flipped_auto, flipped_prim);
+        EXPECT_GT(flipped_auto, 0u);
+        for (std::size_t i = 0; i < normals.size(); ++i)
+            ASSERT_TRUE(by_auto[i].x() == by_prim[i].x() && by_auto[i].y() == by_prim[i].y() &&
+                        by_auto[i].z() == by_prim[i].z())
+                << i;
+    }
+    // A regular grid in the plane z = 0 with every normal (0, 0, 1) or its negation: every edge
+    // costs exactly 0, so the least spanning trees are many and Prim's tie-break picks one; but
+    // every edge that could swap in agrees with the signs (the normals are parallel), so every
+    // least tree gives the same normals and Kruskal's stands.
+    PointCloud grid;
+    for (int y = 0; y < 40; ++y)
+        for (int x = 0; x < 40; ++x) grid.positions.emplace_back(0.1f * x, 0.1f * y, 0.0f);
+    {
+        KdTree tree(grid.positions);
+        std::vector<Vec3f> normals(grid.size());
+        for (std::size_t i = 0; i < normals.size(); ++i) normals[i] = Vec3f(0, 0, (i * 7919) % 3 == 0 ? -1.0f : 1.0f);
+        std::vector<Vec3f> by_prim = normals, by_auto = normals;
+        bool kruskal = false;
+        detail::OrientNormals(tree, by_prim, {}, detail::SpanningTrees::kPrim);
+        detail::OrientNormals(tree, by_auto, {}, detail::SpanningTrees::kAuto, nullptr, &kruskal);
+        EXPECT_TRUE(kruskal);
+        EXPECT_EQ(by_auto, by_prim);
+        for (const Vec3f& n : by_auto) EXPECT_EQ(n.z(), 1.0f);
+    }
+    // Ties that decide: four points, each the others' neighbour (a complete graph), with the
+    // tetrahedron's normals (1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1) / sqrt 3, whose dot
+    // products are all exactly -1/3 (Hoppe's cost alone: six edges of one cost). Each triangle
+    // has three negative edges, so which edge a tree leaves out changes the signs: Prim's runs.
+    {
+        const float s = 1.0f / std::sqrt(3.0f);
+        PointCloud four;
+        four.positions = {{0, 0, 0}, {1, 0, 0}, {0, 1.1f, 0}, {0.2f, 0.3f, 0.9f}};
+        std::vector<Vec3f> normals = {{s, s, s}, {s, -s, -s}, {-s, s, -s}, {-s, -s, s}};
+        KdTree tree(four.positions);
+        const NormalOptions opt{.orient_k = 3, .orient_crossing_weight = 0.0f};
+        std::vector<Vec3f> by_prim = normals, by_auto = normals;
+        bool kruskal = true;
+        detail::OrientNormals(tree, by_prim, opt, detail::SpanningTrees::kPrim);
+        detail::OrientNormals(tree, by_auto, opt, detail::SpanningTrees::kAuto, nullptr, &kruskal);
+        EXPECT_FALSE(kruskal);
+        EXPECT_EQ(by_auto, by_prim);
+    }
+}
+
 // A slab thinner than the orientation graph's neighbourhoods: the box squashed to 4 % of its
 // height (its faces keep their normals). Edges across the slab join antiparallel normals, the
 // cheapest edges under Hoppe's cost alone; the crossing term keeps the tree on the faces.
