@@ -5,6 +5,7 @@
 #include <cmath>
 #include <cstdlib>
 #include <limits>
+#include <map>
 #include <memory>
 #include <new>
 #include <numeric>
@@ -426,6 +427,54 @@ void SplitAbove(std::span<Item> items, std::span<Item> scratch, Node node, std::
     leaves.local().push_back(node);
 }
 
+// Phase 2 of the uniform priority queue, without the queue. Uniform priorities are sizes and a
+// child is smaller than its parent, so the queue pops every node of one size (in order of first
+// item, its tie-break) before any smaller one, and all nodes of that size exist when the first of
+// them is popped. So the queue splits whole size classes, the largest first, and of the class where
+// the count reaches the target the first (target - count) by first item, skipping nodes that
+// cannot be split (all points equal) as the queue does. The splits of one batch touch disjoint
+// item ranges and nodes and run in parallel; the second children join `nodes` in the batch's
+// order. The same clusters as the queue, whatever the thread count.
+void SplitBySizeClass(std::span<Item> items, std::span<Item> scratch, NodeList& nodes, std::size_t target,
+                      ProgressTracker& progress) {
+    std::map<std::uint32_t, std::vector<std::uint32_t>, std::greater<>> by_size;  // size -> node indices
+    for (std::uint32_t i = 0; i < nodes.size(); ++i)
+        if (nodes[i].size() >= 2) by_size[static_cast<std::uint32_t>(nodes[i].size())].push_back(i);
+    std::size_t count = nodes.size();
+    std::vector<Node> second;
+    std::vector<char> split;
+    while (count < target && !by_size.empty()) {
+        std::vector<std::uint32_t> batch = std::move(by_size.begin()->second);
+        by_size.erase(by_size.begin());
+        std::sort(batch.begin(), batch.end(),
+                  [&](std::uint32_t a, std::uint32_t b) { return nodes[a].begin < nodes[b].begin; });
+        for (std::size_t next = 0; next < batch.size() && count < target;) {
+            const std::size_t take = std::min(batch.size() - next, target - count);
+            second.resize(take);
+            split.assign(take, 0);
+            tbb::parallel_for(tbb::blocked_range<std::size_t>(0, take, 64), [&](const tbb::blocked_range<std::size_t>& r) {
+                for (std::size_t j = r.begin(); j != r.end(); ++j) {
+                    Node& node = nodes[batch[next + j]];
+                    Node a;
+                    if (!SplitNode(items, scratch, node, false, a, second[j])) continue;  // stays a leaf
+                    node = a;
+                    split[j] = 1;
+                }
+            });
+            for (std::size_t j = 0; j < take; ++j) {
+                if (!split[j]) continue;
+                const std::uint32_t a = batch[next + j], b = static_cast<std::uint32_t>(nodes.size());
+                nodes.push_back(second[j]);
+                for (const std::uint32_t c : {a, b})
+                    if (nodes[c].size() >= 2) by_size[static_cast<std::uint32_t>(nodes[c].size())].push_back(c);
+                ++count;
+            }
+            progress.Advance(0.5 * static_cast<double>(take) / static_cast<double>(target));
+            next += take;
+        }
+    }
+}
+
 }  // namespace
 
 Clustering HierarchicalClustering(std::span<const Vec3f> points, const SimplifyOptions& options,
@@ -461,37 +510,41 @@ Clustering HierarchicalClustering(std::span<const Vec3f> points, const SimplifyO
         } else {
             nodes.push_back(root);
         }
-        // The node's first item rides in the entry (a node's range does not change while it is
-        // queued): the tie-break of equal priorities, frequent with sizes, reads no node.
-        struct Entry {
-            double priority;
-            std::uint32_t begin, node;
-        };
-        const auto by_priority = [](const Entry& a, const Entry& b) {
-            if (a.priority != b.priority) return a.priority < b.priority;
-            return a.begin > b.begin;  // deterministic tie-break
-        };
-        std::vector<Entry> heap;
-        heap.reserve(options.target + 1);
-        for (std::uint32_t i = 0; i < nodes.size(); ++i) heap.push_back({nodes[i].priority, nodes[i].begin, i});
-        std::make_heap(heap.begin(), heap.end(), by_priority);
-        std::size_t done_since_check = 0, count = heap.size();
-        while (!heap.empty() && count < options.target) {
-            std::pop_heap(heap.begin(), heap.end(), by_priority);
-            const std::uint32_t top = heap.back().node;
-            heap.pop_back();
-            Node a, b;
-            if (!SplitNode(items, scratch, nodes[top], options.adaptive, a, b)) continue;  // stays a leaf
-            nodes[top] = a;
-            nodes.push_back(b);
-            heap.push_back({a.priority, a.begin, top});
-            std::push_heap(heap.begin(), heap.end(), by_priority);
-            heap.push_back({b.priority, b.begin, static_cast<std::uint32_t>(nodes.size() - 1)});
-            std::push_heap(heap.begin(), heap.end(), by_priority);
-            ++count;
-            if (++done_since_check == 4096) {
-                progress.Advance(0.5 * 4096.0 / static_cast<double>(options.target));
-                done_since_check = 0;
+        if (!options.adaptive) {
+            SplitBySizeClass(items, scratch, nodes, options.target, progress);
+        } else {
+            // The node's first item rides in the entry (a node's range does not change while it is
+            // queued): the tie-break of equal priorities, frequent with sizes, reads no node.
+            struct Entry {
+                double priority;
+                std::uint32_t begin, node;
+            };
+            const auto by_priority = [](const Entry& a, const Entry& b) {
+                if (a.priority != b.priority) return a.priority < b.priority;
+                return a.begin > b.begin;  // deterministic tie-break
+            };
+            std::vector<Entry> heap;
+            heap.reserve(options.target + 1);
+            for (std::uint32_t i = 0; i < nodes.size(); ++i) heap.push_back({nodes[i].priority, nodes[i].begin, i});
+            std::make_heap(heap.begin(), heap.end(), by_priority);
+            std::size_t done_since_check = 0, count = heap.size();
+            while (!heap.empty() && count < options.target) {
+                std::pop_heap(heap.begin(), heap.end(), by_priority);
+                const std::uint32_t top = heap.back().node;
+                heap.pop_back();
+                Node a, b;
+                if (!SplitNode(items, scratch, nodes[top], options.adaptive, a, b)) continue;  // stays a leaf
+                nodes[top] = a;
+                nodes.push_back(b);
+                heap.push_back({a.priority, a.begin, top});
+                std::push_heap(heap.begin(), heap.end(), by_priority);
+                heap.push_back({b.priority, b.begin, static_cast<std::uint32_t>(nodes.size() - 1)});
+                std::push_heap(heap.begin(), heap.end(), by_priority);
+                ++count;
+                if (++done_since_check == 4096) {
+                    progress.Advance(0.5 * 4096.0 / static_cast<double>(options.target));
+                    done_since_check = 0;
+                }
             }
         }
         // Every node is a leaf now (split ones were replaced by their first child): the queued
