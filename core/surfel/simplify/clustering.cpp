@@ -19,6 +19,7 @@
 #include <tbb/enumerable_thread_specific.h>
 #include <tbb/parallel_for.h>
 #include <tbb/parallel_invoke.h>
+#include <tbb/parallel_sort.h>
 
 #include "surfel/base/error.h"
 #include "surfel/simplify/simplify_internal.h"
@@ -372,21 +373,42 @@ double MaxPlaneDistance(std::span<const Item> items, const Node& node) {
     return d;
 }
 
-// Each leaf's points labelled, numbered by their smallest input index (Compact: the numbering
-// depends only on which points share a leaf, not on the order the leaves are visited in); each
+// Each leaf's points labelled, numbered by their smallest input index (the numbering Compact gives:
+// it depends only on which points share a leaf, not on the order the leaves are visited in); each
 // cluster's normal is its covariance's v0 (notes 1.2: the direction of least variation of the
-// cluster's points), unoriented.
+// cluster's points), unoriented. The leaves are disjoint, so both passes run in parallel: each
+// point gets its leaf's index (and each leaf its smallest input index), then the leaves' ranks by
+// smallest input index replace the indices.
 Clustering LabelsFromNodes(std::span<const Item> items, std::span<const Item> scratch, const NodeList& leaves,
                            std::size_t n, bool normals) {
     const auto buffer = [&](const Node& leaf) { return leaf.in_scratch ? scratch : items; };
     Clustering out;
-    out.label.assign(n, 0);
-    for (std::size_t c = 0; c < leaves.size(); ++c) {
-        const Node& leaf = leaves[c];
-        const std::span<const Item> buf = buffer(leaf);
-        for (std::uint32_t i = leaf.begin; i < leaf.end; ++i) out.label[buf[i].id] = static_cast<std::uint32_t>(c);
+    out.label.resize(n);
+    const std::size_t m = leaves.size();
+    std::vector<std::uint64_t> first(m);  // (smallest input index << 32) | leaf; empty leaves last
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, m, 256), [&](const tbb::blocked_range<std::size_t>& r) {
+        for (std::size_t c = r.begin(); c != r.end(); ++c) {
+            const Node& leaf = leaves[c];
+            const std::span<const Item> buf = buffer(leaf);
+            std::uint32_t lowest = std::numeric_limits<std::uint32_t>::max();
+            for (std::uint32_t i = leaf.begin; i < leaf.end; ++i) {
+                out.label[buf[i].id] = static_cast<std::uint32_t>(c);
+                lowest = std::min(lowest, buf[i].id);
+            }
+            first[c] = (std::uint64_t(leaf.size() ? lowest : std::numeric_limits<std::uint32_t>::max()) << 32) | c;
+        }
+    });
+    tbb::parallel_sort(first.begin(), first.end());  // distinct keys: one order whatever the threads
+    std::vector<std::uint32_t> rank(m);
+    out.count = 0;
+    for (std::size_t k = 0; k < m; ++k) {
+        const auto c = static_cast<std::uint32_t>(first[k]);
+        rank[c] = static_cast<std::uint32_t>(k);
+        out.count += leaves[c].size() > 0;
     }
-    out.count = Compact(out.label, leaves.size());
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 16384), [&](const tbb::blocked_range<std::size_t>& r) {
+        for (std::size_t i = r.begin(); i != r.end(); ++i) out.label[i] = rank[out.label[i]];
+    });
     if (!normals) return out;
     // Compact numbers clusters by their smallest input index; normals follow that numbering (each
     // leaf writes its own cluster's, in parallel).
@@ -437,24 +459,27 @@ void SplitAbove(std::span<Item> items, std::span<Item> scratch, Node node, std::
 // order. The same clusters as the queue, whatever the thread count.
 void SplitBySizeClass(std::span<Item> items, std::span<Item> scratch, NodeList& nodes, std::size_t target,
                       ProgressTracker& progress) {
-    std::map<std::uint32_t, std::vector<std::uint32_t>, std::greater<>> by_size;  // size -> node indices
-    for (std::uint32_t i = 0; i < nodes.size(); ++i)
-        if (nodes[i].size() >= 2) by_size[static_cast<std::uint32_t>(nodes[i].size())].push_back(i);
+    // size -> (first item << 32 | node index) of the nodes of that size
+    std::map<std::uint32_t, std::vector<std::uint64_t>, std::greater<>> by_size;
+    const auto add = [&](std::uint32_t i) {
+        if (nodes[i].size() >= 2)
+            by_size[static_cast<std::uint32_t>(nodes[i].size())].push_back(std::uint64_t(nodes[i].begin) << 32 | i);
+    };
+    for (std::uint32_t i = 0; i < nodes.size(); ++i) add(i);
     std::size_t count = nodes.size();
     std::vector<Node> second;
     std::vector<char> split;
     while (count < target && !by_size.empty()) {
-        std::vector<std::uint32_t> batch = std::move(by_size.begin()->second);
+        std::vector<std::uint64_t> batch = std::move(by_size.begin()->second);
         by_size.erase(by_size.begin());
-        std::sort(batch.begin(), batch.end(),
-                  [&](std::uint32_t a, std::uint32_t b) { return nodes[a].begin < nodes[b].begin; });
+        std::sort(batch.begin(), batch.end());  // by first item
         for (std::size_t next = 0; next < batch.size() && count < target;) {
             const std::size_t take = std::min(batch.size() - next, target - count);
             second.resize(take);
             split.assign(take, 0);
             tbb::parallel_for(tbb::blocked_range<std::size_t>(0, take, 64), [&](const tbb::blocked_range<std::size_t>& r) {
                 for (std::size_t j = r.begin(); j != r.end(); ++j) {
-                    Node& node = nodes[batch[next + j]];
+                    Node& node = nodes[static_cast<std::uint32_t>(batch[next + j])];
                     Node a;
                     if (!SplitNode(items, scratch, node, false, a, second[j])) continue;  // stays a leaf
                     node = a;
@@ -463,10 +488,9 @@ void SplitBySizeClass(std::span<Item> items, std::span<Item> scratch, NodeList& 
             });
             for (std::size_t j = 0; j < take; ++j) {
                 if (!split[j]) continue;
-                const std::uint32_t a = batch[next + j], b = static_cast<std::uint32_t>(nodes.size());
+                const auto a = static_cast<std::uint32_t>(batch[next + j]), b = static_cast<std::uint32_t>(nodes.size());
                 nodes.push_back(second[j]);
-                for (const std::uint32_t c : {a, b})
-                    if (nodes[c].size() >= 2) by_size[static_cast<std::uint32_t>(nodes[c].size())].push_back(c);
+                add(a), add(b);
                 ++count;
             }
             progress.Advance(0.5 * static_cast<double>(take) / static_cast<double>(target));
