@@ -303,10 +303,7 @@ Node FillItemsAndRoot(std::span<const Vec3f> points, std::span<Item> items, bool
     if (!points.empty()) ref /= static_cast<double>(points.size());
     const Vec3f r = ref.cast<float>();
     const auto n = static_cast<std::uint32_t>(points.size());
-    // In parallel (each item on its own; the first touch of the buffer's fresh pages too).
-    tbb::parallel_for(tbb::blocked_range<std::uint32_t>(0, n, 32768), [&](const tbb::blocked_range<std::uint32_t>& b) {
-        for (std::uint32_t i = b.begin(); i != b.end(); ++i) items[i] = {points[i] - r, i};
-    });
+    for (std::uint32_t i = 0; i < n; ++i) items[i] = {points[i] - r, i};
     return MakeNode(items, 0, n, adaptive);
 }
 
