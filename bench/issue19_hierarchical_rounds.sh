@@ -5,7 +5,9 @@
 # same three rows of an old build's bench_core before ours in every round. Prints one line a run
 # (build, row, wall ms, process CPU ms, points, err_avg_rel, cover_p95, within30), then the medians
 # over the rounds and the CGAL / ours ratios of the CPU medians. The load average goes with it.
-# Usage: SURFEL_DATA=... [BIN=build-bench/bin] [OLD=<old bin dir>] [ROUNDS=5] bench/issue19_hierarchical_rounds.sh
+# Usage: SURFEL_DATA=... [BIN=build-bench/bin] [OLD=<old bin dir>] [ROUNDS=5] [CHRT="chrt -f 10"] bench/issue19_hierarchical_rounds.sh
+# (CHRT: each run at a real-time priority, so that on a loaded machine neither our worker thread
+# nor CGAL waits for the scheduler: the CPU and wall figures of an idle machine, nearly)
 cd "$(dirname "$0")/.."
 : "${SURFEL_DATA:?set SURFEL_DATA}"
 BIN=${BIN:-build-bench/bin}
@@ -20,7 +22,7 @@ for r in $(seq "$ROUNDS"); do for pct in 1 10; do for d in bunny_scans_merged pe
          "new $BIN/bench_core simplify_hierarchical-positions-cgal-count" "cgal $BIN/bench_peer_cgal simplify_hierarchical")
   for x in "${runs[@]}"; do
     set -- $x
-    "$2" --benchmark_filter="^$3_${pct}pct/$d/" --benchmark_format=json 2>/dev/null | python3 -c "
+    $CHRT "$2" --benchmark_filter="^$3_${pct}pct/$d/" --benchmark_format=json 2>/dev/null | python3 -c "
 import json,sys; b=json.load(sys.stdin)['benchmarks'][0]
 print('$1', b['name'].split('/iter')[0], round(b['real_time'],1), round(b['cpu_time'],1), int(b.get('points',0)),
       '%.5g'%b.get('err_avg_rel',0), '%.5g'%b.get('cover_p95',0), '%.4g'%b.get('within30',0))"
