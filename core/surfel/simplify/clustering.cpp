@@ -5,6 +5,7 @@
 #include <cmath>
 #include <cstdlib>
 #include <limits>
+#include <map>
 #include <memory>
 #include <new>
 #include <numeric>
@@ -18,6 +19,7 @@
 #include <tbb/enumerable_thread_specific.h>
 #include <tbb/parallel_for.h>
 #include <tbb/parallel_invoke.h>
+#include <tbb/parallel_sort.h>
 
 #include "surfel/base/error.h"
 #include "surfel/simplify/simplify_internal.h"
@@ -145,16 +147,26 @@ private:
 // A node of the split tree: items[begin, end), their centroid c and scatter S = sum (p - c)(p - c)^T
 // (the covariance times n), both computed about the parent's centroid in the parent's split pass,
 // so each node's statistics are exact sums over its own items, well conditioned at every depth.
+// 104 bytes (it was 200 with a cached Spread): the node lists are written, copied and queued
+// by the ten thousand. Only S's lower triangle is kept: Eigen's direct 3x3 solver reads no other
+// (selfadjointView<Lower>), so the solves give the bits they gave with the whole matrix.
 struct Node {
     std::uint32_t begin = 0, end = 0;
     bool in_scratch = false;  // which of the two item buffers holds items[begin, end) (splits alternate)
-    Eigen::Vector3d c = Eigen::Vector3d::Zero();
-    Eigen::Matrix3d S = Eigen::Matrix3d::Zero();
-    Spread spread;  // valid when `analyzed` (uniform priorities need none: EnsureSpread)
-    bool analyzed = false;
+    bool has_axis = false;    // `axis` is the split axis v2 (adaptive: from the priority's solve)
+    float axis[3] = {1.0f, 0.0f, 0.0f};
     double priority = 0.0;
+    double c[3] = {0.0, 0.0, 0.0};
+    double S[6] = {0.0, 0.0, 0.0, 0.0, 0.0, 0.0};  // S00, S10, S20, S11, S21, S22
     std::size_t size() const { return end - begin; }
+    Eigen::Vector3d Centroid() const { return Eigen::Vector3d(c[0], c[1], c[2]); }
+    Eigen::Matrix3d Scatter() const {
+        Eigen::Matrix3d m;
+        m << S[0], S[1], S[2], S[1], S[3], S[4], S[2], S[4], S[5];
+        return m;
+    }
 };
+static_assert(sizeof(Node) == 104);
 
 using NodeList = std::vector<Node, LargeAllocator<Node>>;
 
@@ -169,10 +181,54 @@ Spread AnalyzeScatter(const Eigen::Matrix3d& S, std::size_t n) {
     return s;
 }
 
-void EnsureSpread(Node& node) {
-    if (node.analyzed) return;
-    node.spread = AnalyzeScatter(node.S, node.size());
-    node.analyzed = true;
+Spread SpreadOf(const Node& node) { return AnalyzeScatter(node.Scatter(), node.size()); }
+
+// The split axis of a node (v2 of S / n) and whether it has a spread at all (largest eigenvalue
+// > 0): the operations of Eigen's computeDirect (Eigen 3.4, direct_selfadjoint_eigenvalues<.., 3,
+// false>::run) as far as v2, so the bits of AnalyzeScatter's v2 and eigenvalues[2], without the
+// eigenvectors a split does not use (one kernel extraction instead of two, no cross product).
+bool SplitAxis(const Node& node, Eigen::Vector3d& v2) {
+    using Direct = Eigen::internal::direct_selfadjoint_eigenvalues<Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d>, 3, false>;
+    if (node.size() < 2) return false;
+    const Eigen::Matrix3d mat = node.Scatter() / static_cast<double>(node.size());
+    const double shift = mat.trace() / 3.0;
+    Eigen::Matrix3d scaled = mat.selfadjointView<Eigen::Lower>();
+    scaled.diagonal().array() -= shift;
+    const double scale = scaled.cwiseAbs().maxCoeff();
+    if (scale > 0) scaled /= scale;
+    Eigen::Vector3d eivals;
+    Direct::computeRoots(scaled, eivals);
+    Eigen::Vector3d lambda = eivals;  // the solver's eigenvalues, clamped as AnalyzeScatter does
+    lambda *= scale;
+    lambda.array() += shift;
+    if (lambda.cwiseMax(0.0)[2] <= 0.0) return false;  // all points equal
+    if ((eivals(2) - eivals(0)) <= Eigen::NumTraits<double>::epsilon()) {
+        v2 = Eigen::Vector3d::UnitZ();  // the solver's identity
+        return true;
+    }
+    Eigen::Matrix3d tmp = scaled, vecs;
+    double d0 = eivals(2) - eivals(1);
+    const double d1 = eivals(1) - eivals(0);
+    Eigen::Index k = 0, l = 2;
+    if (d0 > d1) {
+        std::swap(k, l);
+        d0 = d1;
+    }
+    tmp.diagonal().array() -= eivals(k);
+    Direct::extract_kernel(tmp, vecs.col(k), vecs.col(l));
+    if (l == 2) {  // v2 from the saved representative or its own kernel
+        if (d0 <= 2 * Eigen::NumTraits<double>::epsilon() * d1) {
+            vecs.col(l) -= vecs.col(k).dot(vecs.col(l)) * vecs.col(l);
+            vecs.col(l).normalize();
+        } else {
+            tmp = scaled;
+            tmp.diagonal().array() -= eivals(l);
+            Eigen::Vector3d dummy;
+            Direct::extract_kernel(tmp, vecs.col(l), dummy);
+        }
+    }
+    v2 = vecs.col(2);
+    return true;
 }
 
 // Uniform: split the largest cluster; its spread (the eigen solve) waits until the node is split
@@ -181,14 +237,16 @@ void EnsureSpread(Node& node) {
 // regions are still split by size once curved ones are fine enough.
 void Finish(Node& node, bool adaptive) {
     const double n = static_cast<double>(node.size());
-    node.analyzed = false;
+    node.has_axis = false;
     if (!adaptive) {
         node.priority = node.size() < 2 ? -1.0 : n;
         return;
     }
-    EnsureSpread(node);
-    node.priority = node.size() < 2 || node.spread.eigenvalues[2] <= 0.0 ? -1.0  // cannot split
-                                                                         : n * (node.spread.Variation() + 1e-3);
+    const Spread sp = SpreadOf(node);
+    node.has_axis = true;
+    for (int k = 0; k < 3; ++k) node.axis[k] = static_cast<float>(sp.v2[k]);
+    node.priority = node.size() < 2 || sp.eigenvalues[2] <= 0.0 ? -1.0  // cannot split
+                                                                : n * (sp.Variation() + 1e-3);
 }
 
 // Sums of d = p - o and d d^T over items (double accumulators), for a node's exact statistics.
@@ -206,9 +264,13 @@ struct Sums {
     // Centroid and scatter about it, for sums taken about o.
     void To(const Vec3f& o, Node& node) const {
         const Eigen::Vector3d m(d[0] / n, d[1] / n, d[2] / n);
-        node.c = o.cast<double>() + m;
-        node.S << dd[0], dd[1], dd[2], dd[1], dd[3], dd[4], dd[2], dd[4], dd[5];
-        node.S -= n * m * m.transpose();
+        const Eigen::Vector3d c = o.cast<double>() + m;
+        Eigen::Matrix3d S;
+        S << dd[0], dd[1], dd[2], dd[1], dd[3], dd[4], dd[2], dd[4], dd[5];
+        S -= n * m * m.transpose();
+        for (int k = 0; k < 3; ++k) node.c[k] = c[k];
+        node.S[0] = S(0, 0), node.S[1] = S(1, 0), node.S[2] = S(2, 0);
+        node.S[3] = S(1, 1), node.S[4] = S(2, 1), node.S[5] = S(2, 2);
     }
 };
 
@@ -259,10 +321,13 @@ std::span<Item> BufferOf(const Node& node, std::span<Item> items, std::span<Item
 // build and a baseline one, the same bits).
 bool SplitNode(std::span<Item> items, std::span<Item> scratch, Node& node, bool adaptive, Node& left, Node& right) {
     if (node.priority < 0) return false;
-    EnsureSpread(node);
-    if (node.spread.eigenvalues[2] <= 0.0) return false;  // all points equal
-    const Vec3f c = node.c.cast<float>();
-    const Vec3f axis = node.spread.v2.cast<float>();
+    Vec3f axis(node.axis[0], node.axis[1], node.axis[2]);
+    if (!node.has_axis) {  // adaptive nodes that cannot split have priority < 0
+        Eigen::Vector3d v2;
+        if (!SplitAxis(node, v2)) return false;  // all points equal
+        axis = v2.cast<float>();
+    }
+    const Vec3f c = node.Centroid().cast<float>();
     const std::span<Item> src = BufferOf(node, items, scratch);
     const std::span<Item> dst = node.in_scratch ? items : scratch;
     // The side test as p . axis < c . axis (one dot product a point); the sums about c.
@@ -300,45 +365,66 @@ bool SplitNode(std::span<Item> items, std::span<Item> scratch, Node& node, bool 
     return true;
 }
 
-double MaxPlaneDistance(std::span<const Item> items, Node& node) {
-    EnsureSpread(node);
-    const Vec3f c = node.c.cast<float>();
-    const Vec3f n = node.spread.v0.cast<float>();
+double MaxPlaneDistance(std::span<const Item> items, const Node& node) {
+    const Vec3f c = node.Centroid().cast<float>();
+    const Vec3f n = SpreadOf(node).v0.cast<float>();
     double d = 0.0;
     for (std::uint32_t i = node.begin; i < node.end; ++i) d = std::max(d, std::abs(double((items[i].p - c).dot(n))));
     return d;
 }
 
-// Each leaf's points labelled, numbered by their smallest input index (Compact: the numbering
-// depends only on which points share a leaf, not on the order the leaves are visited in); each
+// Each leaf's points labelled, numbered by their smallest input index (the numbering Compact gives:
+// it depends only on which points share a leaf, not on the order the leaves are visited in); each
 // cluster's normal is its covariance's v0 (notes 1.2: the direction of least variation of the
-// cluster's points), unoriented.
-Clustering LabelsFromNodes(std::span<const Item> items, std::span<const Item> scratch, NodeList& leaves,
+// cluster's points), unoriented. The leaves are disjoint, so both passes run in parallel: each
+// point gets its leaf's index (and each leaf its smallest input index), then the leaves' ranks by
+// smallest input index replace the indices.
+Clustering LabelsFromNodes(std::span<const Item> items, std::span<const Item> scratch, const NodeList& leaves,
                            std::size_t n, bool normals) {
     const auto buffer = [&](const Node& leaf) { return leaf.in_scratch ? scratch : items; };
     Clustering out;
-    out.label.assign(n, 0);
-    for (std::size_t c = 0; c < leaves.size(); ++c) {
-        const Node& leaf = leaves[c];
-        const std::span<const Item> buf = buffer(leaf);
-        for (std::uint32_t i = leaf.begin; i < leaf.end; ++i) out.label[buf[i].id] = static_cast<std::uint32_t>(c);
-    }
-    out.count = Compact(out.label, leaves.size());
-    if (!normals) return out;
-    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, leaves.size(), 256), [&](const tbb::blocked_range<std::size_t>& r) {
-        for (std::size_t c = r.begin(); c != r.end(); ++c) EnsureSpread(leaves[c]);
+    out.label.resize(n);
+    const std::size_t m = leaves.size();
+    std::vector<std::uint64_t> first(m);  // (smallest input index << 32) | leaf; empty leaves last
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, m, 256), [&](const tbb::blocked_range<std::size_t>& r) {
+        for (std::size_t c = r.begin(); c != r.end(); ++c) {
+            const Node& leaf = leaves[c];
+            const std::span<const Item> buf = buffer(leaf);
+            std::uint32_t lowest = std::numeric_limits<std::uint32_t>::max();
+            for (std::uint32_t i = leaf.begin; i < leaf.end; ++i) {
+                out.label[buf[i].id] = static_cast<std::uint32_t>(c);
+                lowest = std::min(lowest, buf[i].id);
+            }
+            first[c] = (std::uint64_t(leaf.size() ? lowest : std::numeric_limits<std::uint32_t>::max()) << 32) | c;
+        }
     });
-    // Compact numbers clusters by their smallest input index; normals follow that numbering.
-    out.normals.assign(out.count, Vec3f::Zero());
-    for (const Node& leaf : leaves) {
-        if (leaf.size() == 0) continue;
-        const Spread& sp = leaf.spread;
-        // A normal needs a patch: leave small (under 5 points), elongated (lambda_1 < lambda_2 / 10)
-        // or thick (lambda_0 > lambda_1 / 2) clusters to the caller's estimate (zero here).
-        const bool planar = leaf.size() >= 5 && sp.eigenvalues[1] > 0.1 * sp.eigenvalues[2] &&
-                            sp.eigenvalues[0] < 0.5 * sp.eigenvalues[1];
-        out.normals[out.label[buffer(leaf)[leaf.begin].id]] = planar ? Vec3f(sp.v0.cast<float>()) : Vec3f::Zero();
+    tbb::parallel_sort(first.begin(), first.end());  // distinct keys: one order whatever the threads
+    std::vector<std::uint32_t> rank(m);
+    out.count = 0;
+    for (std::size_t k = 0; k < m; ++k) {
+        const auto c = static_cast<std::uint32_t>(first[k]);
+        rank[c] = static_cast<std::uint32_t>(k);
+        out.count += leaves[c].size() > 0;
     }
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 16384), [&](const tbb::blocked_range<std::size_t>& r) {
+        for (std::size_t i = r.begin(); i != r.end(); ++i) out.label[i] = rank[out.label[i]];
+    });
+    if (!normals) return out;
+    // Compact numbers clusters by their smallest input index; normals follow that numbering (each
+    // leaf writes its own cluster's, in parallel).
+    out.normals.assign(out.count, Vec3f::Zero());
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, leaves.size(), 256), [&](const tbb::blocked_range<std::size_t>& r) {
+        for (std::size_t c = r.begin(); c != r.end(); ++c) {
+            const Node& leaf = leaves[c];
+            if (leaf.size() == 0) continue;
+            const Spread sp = SpreadOf(leaf);
+            // A normal needs a patch: leave small (under 5 points), elongated (lambda_1 < lambda_2 / 10)
+            // or thick (lambda_0 > lambda_1 / 2) clusters to the caller's estimate (zero here).
+            const bool planar = leaf.size() >= 5 && sp.eigenvalues[1] > 0.1 * sp.eigenvalues[2] &&
+                                sp.eigenvalues[0] < 0.5 * sp.eigenvalues[1];
+            out.normals[out.label[buffer(leaf)[leaf.begin].id]] = planar ? Vec3f(sp.v0.cast<float>()) : Vec3f::Zero();
+        }
+    });
     return out;
 }
 
@@ -361,6 +447,56 @@ void SplitAbove(std::span<Item> items, std::span<Item> scratch, Node node, std::
         node = a;
     }
     leaves.local().push_back(node);
+}
+
+// Phase 2 of the uniform priority queue, without the queue. Uniform priorities are sizes and a
+// child is smaller than its parent, so the queue pops every node of one size (in order of first
+// item, its tie-break) before any smaller one, and all nodes of that size exist when the first of
+// them is popped. So the queue splits whole size classes, the largest first, and of the class where
+// the count reaches the target the first (target - count) by first item, skipping nodes that
+// cannot be split (all points equal) as the queue does. The splits of one batch touch disjoint
+// item ranges and nodes and run in parallel; the second children join `nodes` in the batch's
+// order. The same clusters as the queue, whatever the thread count.
+void SplitBySizeClass(std::span<Item> items, std::span<Item> scratch, NodeList& nodes, std::size_t target,
+                      ProgressTracker& progress) {
+    // size -> (first item << 32 | node index) of the nodes of that size
+    std::map<std::uint32_t, std::vector<std::uint64_t>, std::greater<>> by_size;
+    const auto add = [&](std::uint32_t i) {
+        if (nodes[i].size() >= 2)
+            by_size[static_cast<std::uint32_t>(nodes[i].size())].push_back(std::uint64_t(nodes[i].begin) << 32 | i);
+    };
+    for (std::uint32_t i = 0; i < nodes.size(); ++i) add(i);
+    std::size_t count = nodes.size();
+    std::vector<Node> second;
+    std::vector<char> split;
+    while (count < target && !by_size.empty()) {
+        std::vector<std::uint64_t> batch = std::move(by_size.begin()->second);
+        by_size.erase(by_size.begin());
+        std::sort(batch.begin(), batch.end());  // by first item
+        for (std::size_t next = 0; next < batch.size() && count < target;) {
+            const std::size_t take = std::min(batch.size() - next, target - count);
+            second.resize(take);
+            split.assign(take, 0);
+            tbb::parallel_for(tbb::blocked_range<std::size_t>(0, take, 64), [&](const tbb::blocked_range<std::size_t>& r) {
+                for (std::size_t j = r.begin(); j != r.end(); ++j) {
+                    Node& node = nodes[static_cast<std::uint32_t>(batch[next + j])];
+                    Node a;
+                    if (!SplitNode(items, scratch, node, false, a, second[j])) continue;  // stays a leaf
+                    node = a;
+                    split[j] = 1;
+                }
+            });
+            for (std::size_t j = 0; j < take; ++j) {
+                if (!split[j]) continue;
+                const auto a = static_cast<std::uint32_t>(batch[next + j]), b = static_cast<std::uint32_t>(nodes.size());
+                nodes.push_back(second[j]);
+                add(a), add(b);
+                ++count;
+            }
+            progress.Advance(0.5 * static_cast<double>(take) / static_cast<double>(target));
+            next += take;
+        }
+    }
 }
 
 }  // namespace
@@ -398,37 +534,41 @@ Clustering HierarchicalClustering(std::span<const Vec3f> points, const SimplifyO
         } else {
             nodes.push_back(root);
         }
-        // The node's first item rides in the entry (a node's range does not change while it is
-        // queued): the tie-break of equal priorities, frequent with sizes, reads no node.
-        struct Entry {
-            double priority;
-            std::uint32_t begin, node;
-        };
-        const auto by_priority = [](const Entry& a, const Entry& b) {
-            if (a.priority != b.priority) return a.priority < b.priority;
-            return a.begin > b.begin;  // deterministic tie-break
-        };
-        std::vector<Entry> heap;
-        heap.reserve(options.target + 1);
-        for (std::uint32_t i = 0; i < nodes.size(); ++i) heap.push_back({nodes[i].priority, nodes[i].begin, i});
-        std::make_heap(heap.begin(), heap.end(), by_priority);
-        std::size_t done_since_check = 0, count = heap.size();
-        while (!heap.empty() && count < options.target) {
-            std::pop_heap(heap.begin(), heap.end(), by_priority);
-            const std::uint32_t top = heap.back().node;
-            heap.pop_back();
-            Node a, b;
-            if (!SplitNode(items, scratch, nodes[top], options.adaptive, a, b)) continue;  // stays a leaf
-            nodes[top] = a;
-            nodes.push_back(b);
-            heap.push_back({a.priority, a.begin, top});
-            std::push_heap(heap.begin(), heap.end(), by_priority);
-            heap.push_back({b.priority, b.begin, static_cast<std::uint32_t>(nodes.size() - 1)});
-            std::push_heap(heap.begin(), heap.end(), by_priority);
-            ++count;
-            if (++done_since_check == 4096) {
-                progress.Advance(0.5 * 4096.0 / static_cast<double>(options.target));
-                done_since_check = 0;
+        if (!options.adaptive) {
+            SplitBySizeClass(items, scratch, nodes, options.target, progress);
+        } else {
+            // The node's first item rides in the entry (a node's range does not change while it is
+            // queued): the tie-break of equal priorities, frequent with sizes, reads no node.
+            struct Entry {
+                double priority;
+                std::uint32_t begin, node;
+            };
+            const auto by_priority = [](const Entry& a, const Entry& b) {
+                if (a.priority != b.priority) return a.priority < b.priority;
+                return a.begin > b.begin;  // deterministic tie-break
+            };
+            std::vector<Entry> heap;
+            heap.reserve(options.target + 1);
+            for (std::uint32_t i = 0; i < nodes.size(); ++i) heap.push_back({nodes[i].priority, nodes[i].begin, i});
+            std::make_heap(heap.begin(), heap.end(), by_priority);
+            std::size_t done_since_check = 0, count = heap.size();
+            while (!heap.empty() && count < options.target) {
+                std::pop_heap(heap.begin(), heap.end(), by_priority);
+                const std::uint32_t top = heap.back().node;
+                heap.pop_back();
+                Node a, b;
+                if (!SplitNode(items, scratch, nodes[top], options.adaptive, a, b)) continue;  // stays a leaf
+                nodes[top] = a;
+                nodes.push_back(b);
+                heap.push_back({a.priority, a.begin, top});
+                std::push_heap(heap.begin(), heap.end(), by_priority);
+                heap.push_back({b.priority, b.begin, static_cast<std::uint32_t>(nodes.size() - 1)});
+                std::push_heap(heap.begin(), heap.end(), by_priority);
+                ++count;
+                if (++done_since_check == 4096) {
+                    progress.Advance(0.5 * 4096.0 / static_cast<double>(options.target));
+                    done_since_check = 0;
+                }
             }
         }
         // Every node is a leaf now (split ones were replaced by their first child): the queued
@@ -444,7 +584,7 @@ Clustering HierarchicalClustering(std::span<const Vec3f> points, const SimplifyO
             Node node = std::move(stack.back());
             stack.pop_back();
             bool split = node.size() > n_max;
-            if (!split && options.adaptive) split = node.spread.Variation() > options.max_variation;
+            if (!split && options.adaptive) split = SpreadOf(node).Variation() > options.max_variation;
             if (!split && options.error > 0) split = MaxPlaneDistance(BufferOf(node, items, scratch), node) > options.error;
             Node a, b;
             if (split && SplitNode(items, scratch, node, options.adaptive, a, b)) {

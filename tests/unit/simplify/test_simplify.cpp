@@ -294,6 +294,9 @@ TEST(Simplify, HierarchicalSplitPassSumsAreASequentialLoopsToTheBit) {
                 std::vector<Item> items(n), dst(n, Item{});
                 for (std::uint32_t i = 0; i < n; ++i)
                     items[i] = {float(uniform(-1, 1)), float(uniform(-1, 1)), float(uniform(-1, 1)), i};
+                // A side test of -0 (x 0 + y 0.6 = -0, z 0.8 = -0): the AVX2 build adds the id lane's
+                // +0 to z az and gets +0, which is on the same side of every cut.
+                if (n > 1) items[1] = {-0.5f, -0.0f, -0.0f, 1};
                 double sums[18], ref[18] = {};
                 std::uint32_t neg = 0;
                 for (const Item& it : items) {
@@ -405,6 +408,51 @@ TEST(Simplify, HierarchicalKeepsCoincidentPointsTogether) {
         for (const Vec3f& p : corners)
             EXPECT_NE(std::find(r.cloud.positions.begin(), r.cloud.positions.end(), p), r.cloud.positions.end())
                 << target << " " << p.transpose();
+    }
+}
+
+// Uniform hierarchical clustering with a target splits the largest clusters first (the priority
+// queue of notes 2.1.2, run as whole size classes in parallel, clustering.cpp): 1,024 points on a
+// line at x = 0..1023 split into aligned runs of 512, 256, ..., 4, except that x < 64 holds 16
+// groups of 4 equal points (they cannot be split, and the centroids of every larger run still cut
+// between runs). At 300 clusters all 256 runs of 4 exist and 44 of the 240 splittable ones are
+// split in two; at 600 every splittable run of 4 is split (496 clusters) and 104 runs of 2 more.
+// Each cluster's centroid tells its kind (x mod 4: 0 equal points, 1.5 a run of 4, 0.5 or 2.5 a
+// run of 2, otherwise single points). The same clusters at 1 and 4 threads.
+TEST(Simplify, HierarchicalSplitsWholeSizeClassesLargestFirstToTheTarget) {
+    PointCloud c;
+    for (int i = 0; i < 1024; ++i) c.positions.emplace_back(float(i < 64 ? 4 * (i / 4) : i), 0.0f, 0.0f);
+    for (const std::size_t target : {300u, 600u}) {
+        std::vector<Vec3f> at[2];
+        for (const int threads : {1, 4}) {
+            tbb::global_control limit(tbb::global_control::max_allowed_parallelism, threads);
+            SimplifyOptions o;
+            o.method = SimplifyMethod::kHierarchical;
+            o.target = target;
+            o.positions_only = true;
+            o.measure_error = false;
+            at[threads == 4] = Simplify(c, o).cloud.positions;
+        }
+        ASSERT_EQ(at[0].size(), target);
+        EXPECT_EQ(at[0], at[1]) << target;
+        std::size_t equal = 0, four = 0, two = 0, one = 0;
+        for (const Vec3f& p : at[0]) {
+            const float r = std::fmod(p.x(), 4.0f);
+            equal += r == 0.0f && p.x() < 64.0f;
+            four += r == 1.5f;
+            two += r == 0.5f || r == 2.5f;
+            one += r != 1.5f && r != 0.5f && r != 2.5f && !(r == 0.0f && p.x() < 64.0f);
+        }
+        EXPECT_EQ(equal, 16u) << target;
+        if (target == 300) {
+            EXPECT_EQ(four, 256u - 16u - 44u);
+            EXPECT_EQ(two, 88u);
+            EXPECT_EQ(one, 0u);
+        } else {
+            EXPECT_EQ(four, 0u);
+            EXPECT_EQ(two, 480u - 104u);
+            EXPECT_EQ(one, 208u);
+        }
     }
 }
 
