@@ -156,11 +156,15 @@ std::size_t UniformGrid::GatherBlock(int x, int y, int z, std::vector<float>& cx
             const std::size_t column = (static_cast<std::size_t>(bx) * ny + by) * nz;
             const std::uint32_t b = starts_[column + std::max(0, z - 1)];
             const std::uint32_t e = starts_[column + std::min(nz - 1, z + 1) + 1];
-            if (bx == x && by == y) self = cx.size() + (first - b);
-            for (std::uint32_t j = b; j < e; ++j) {
-                cx.push_back(sorted_[j].x()), cy.push_back(sorted_[j].y()), cz.push_back(sorted_[j].z());
-                if (ids) ids->push_back(order_[j]);
-            }
+            const std::size_t m0 = cx.size();
+            if (bx == x && by == y) self = m0 + (first - b);
+            // Sized once a run, then written without push_back's capacity checks (session 14:
+            // ~0.23 G instructions of KnnAll on the merged scans with them).
+            cx.resize(m0 + (e - b)), cy.resize(m0 + (e - b)), cz.resize(m0 + (e - b));
+            float *X = cx.data() + m0, *Y = cy.data() + m0, *Z = cz.data() + m0;
+            const Vec3f* src = sorted_.data() + b;
+            for (std::uint32_t j = 0; j < e - b; ++j) X[j] = src[j].x(), Y[j] = src[j].y(), Z[j] = src[j].z();
+            if (ids) ids->insert(ids->end(), order_.begin() + b, order_.begin() + e);
         }
     return self;
 }
