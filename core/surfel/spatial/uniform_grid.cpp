@@ -156,11 +156,15 @@ std::size_t UniformGrid::GatherBlock(int x, int y, int z, std::vector<float>& cx
             const std::size_t column = (static_cast<std::size_t>(bx) * ny + by) * nz;
             const std::uint32_t b = starts_[column + std::max(0, z - 1)];
             const std::uint32_t e = starts_[column + std::min(nz - 1, z + 1) + 1];
-            if (bx == x && by == y) self = cx.size() + (first - b);
-            for (std::uint32_t j = b; j < e; ++j) {
-                cx.push_back(sorted_[j].x()), cy.push_back(sorted_[j].y()), cz.push_back(sorted_[j].z());
-                if (ids) ids->push_back(order_[j]);
-            }
+            const std::size_t m0 = cx.size();
+            if (bx == x && by == y) self = m0 + (first - b);
+            // Sized once a run, then written without push_back's capacity checks (session 14:
+            // ~0.23 G instructions of KnnAll on the merged scans with them).
+            cx.resize(m0 + (e - b)), cy.resize(m0 + (e - b)), cz.resize(m0 + (e - b));
+            float *X = cx.data() + m0, *Y = cy.data() + m0, *Z = cz.data() + m0;
+            const Vec3f* src = sorted_.data() + b;
+            for (std::uint32_t j = 0; j < e - b; ++j) X[j] = src[j].x(), Y[j] = src[j].y(), Z[j] = src[j].z();
+            if (ids) ids->insert(ids->end(), order_.begin() + b, order_.begin() + e);
         }
     return self;
 }
@@ -339,6 +343,74 @@ void UniformGrid::KnnInBlock(int k, std::uint32_t* indices, float* dist2, std::u
                 }
             if (done) done(slab_points);
         }
+    });
+}
+
+void UniformGrid::KnnInWideBlock(std::span<const Vec3f> points, std::span<const std::uint32_t> rows, int k,
+                                 int min_ring, int max_ring, std::uint32_t* indices, float* dist2, std::uint8_t* answered,
+                                 const std::function<void(std::size_t)>& done) const {
+    SURFEL_CHECK(k >= 1 && k <= 64, "k must be 1..64, got " << k);
+    SURFEL_CHECK(min_ring >= 2 && max_ring <= (1 << 20), "rings " << min_ring << " .. " << max_ring);
+    if (!dense_) return;
+    const int nx = dims_[0], ny = dims_[1], nz = dims_[2];
+    struct Ranked {
+        float d2;
+        std::uint32_t index;
+    };
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, rows.size(), 16), [&](const tbb::blocked_range<std::size_t>& rs) {
+        std::vector<float> cx, cy, cz, d2;
+        std::vector<std::uint32_t> cid;
+        std::vector<Ranked> ranked;
+        for (std::size_t t = rs.begin(); t != rs.end(); ++t) {
+            const std::uint32_t i = rows[t];
+            const Vec3f p = points[i];
+            int at[3];
+            DenseCellOf(p, at);
+            for (int r = min_ring; r <= max_ring; ++r) {
+                // BlockReach for the (2 r + 1)^3 block: infinite when it holds the whole grid.
+                const Vec3f lo = origin_ + cell_ * Vec3f(float(at[0] - r), float(at[1] - r), float(at[2] - r));
+                const Vec3f hi = origin_ + cell_ * Vec3f(float(at[0] + r + 1), float(at[1] + r + 1), float(at[2] + r + 1));
+                float reach = std::numeric_limits<float>::infinity();
+                for (int a = 0; a < 3; ++a) {
+                    if (at[a] - r > 0) reach = std::min(reach, p[a] - lo[a]);
+                    if (at[a] + r < dims_[a] - 1) reach = std::min(reach, hi[a] - p[a]);
+                }
+                reach -= 1e-4f * cell_;
+                if (!(reach > 0.0f)) continue;
+                const float reach2 = reach * reach;
+                cx.clear(), cy.clear(), cz.clear(), cid.clear();
+                const int z0 = std::max(0, at[2] - r), z1 = std::min(nz - 1, at[2] + r);
+                for (int bx = std::max(0, at[0] - r); bx <= std::min(nx - 1, at[0] + r); ++bx)
+                    for (int by = std::max(0, at[1] - r); by <= std::min(ny - 1, at[1] + r); ++by) {
+                        const std::size_t column = (static_cast<std::size_t>(bx) * ny + by) * nz;
+                        const std::uint32_t b = starts_[column + z0], e = starts_[column + z1 + 1];
+                        const std::size_t m0 = cx.size();
+                        cx.resize(m0 + (e - b)), cy.resize(m0 + (e - b)), cz.resize(m0 + (e - b));
+                        for (std::uint32_t j = b; j < e; ++j)
+                            cx[m0 + (j - b)] = sorted_[j].x(), cy[m0 + (j - b)] = sorted_[j].y(), cz[m0 + (j - b)] = sorted_[j].z();
+                        cid.insert(cid.end(), order_.begin() + b, order_.begin() + e);
+                    }
+                const std::size_t m = cx.size();
+                if (m <= static_cast<std::size_t>(k)) continue;  // fewer than k others
+                if (d2.size() < m) d2.resize(m);
+                Distances2(cx.data(), cy.data(), cz.data(), m, p, d2.data());  // KnnInBlock's floats
+                // Only candidates within the reach can make an accepted row: when k of them lie
+                // within it, the k smallest of all are among them.
+                ranked.clear();
+                for (std::size_t j = 0; j < m; ++j)
+                    if (d2[j] <= reach2 && cid[j] != i) ranked.push_back({d2[j], cid[j]});  // not its own neighbour
+                if (ranked.size() < static_cast<std::size_t>(k)) continue;
+                const auto less = [](const Ranked& x, const Ranked& y) {
+                    return x.d2 < y.d2 || (x.d2 == y.d2 && x.index < y.index);
+                };
+                std::partial_sort(ranked.begin(), ranked.begin() + k, ranked.end(), less);
+                const std::size_t row = static_cast<std::size_t>(i) * k;
+                for (int c = 0; c < k; ++c) indices[row + c] = ranked[c].index, dist2[row + c] = ranked[c].d2;
+                answered[i] = 1;
+                break;
+            }
+        }
+        if (done) done(rs.size());
     });
 }
 

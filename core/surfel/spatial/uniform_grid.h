@@ -113,6 +113,21 @@ public:
     void KnnInBlock(int k, std::uint32_t* indices, float* dist2, std::uint8_t* answered,
                     const std::function<void(std::size_t)>& done) const;
 
+    /// Dense layout only: the rows KnnInBlock leaves (points whose k-th neighbour may lie outside
+    /// the 3 x 3 x 3 block), searched in wider blocks: the (2 r + 1)^3 cells around the point's
+    /// cell for r = min_ring .. max_ring (min_ring >= 2; a ring of 1 << 20 holds the whole grid,
+    /// where every row with k others is answered). The same float distances and ranking by
+    /// (squared distance, index) as KnnInBlock; a row is accepted when k candidates lie within
+    /// the wider block's reach (BlockReach's, so no point outside it is as near), and is then
+    /// the exact one. `points` are the points the grid was built from, `rows` the indices to
+    /// answer; the table and `answered` as in KnnInBlock; rows not answered within max_ring are
+    /// left alone (far outliers: the caller searches them another way). `done(rows)` is called
+    /// from the worker threads as rows are finished. Parallel; no row depends on the thread
+    /// count. Does nothing for the sparse layout.
+    void KnnInWideBlock(std::span<const Vec3f> points, std::span<const std::uint32_t> rows, int k, int min_ring,
+                        int max_ring, std::uint32_t* indices, float* dist2, std::uint8_t* answered,
+                        const std::function<void(std::size_t)>& done) const;
+
     /// Whether a grid of `n` points in `box` with this cell gets the dense layout (at most
     /// `cells_per_point` cells a point, 4 bytes each; the constructor allows 32).
     static bool FitsDense(const BoundingBox& box, std::size_t n, float cell,

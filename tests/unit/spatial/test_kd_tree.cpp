@@ -167,6 +167,60 @@ TEST(KdTree, KnnAllRowsAreTheTreesWithDuplicatesAndOutliers) {
     ExpectKnnAllIsTheTreesAnswer(pts, 10);
 }
 
+// More outliers than KnnAll searches in the whole grid: the rows past the 9 x 9 x 9 blocks come
+// from the tree, the same bits.
+TEST(KdTree, KnnAllRowsAreTheTreesWithManyFarOutliers) {
+    ShapeOptions o;
+    o.points = 8000;
+    std::vector<Vec3f> pts = SampleShape(Shape::kSphere, o).positions;
+    for (int i = 0; i < 80; ++i) pts.emplace_back(4.0f + 0.9f * i, 0.3f * (i % 7), -2.0f - 0.5f * (i % 3));
+    ExpectKnnAllIsTheTreesAnswer(pts, 8);
+}
+
+// The wider blocks answer the rows the 3 x 3 x 3 blocks leave, exactly (the tree's rows), and
+// the whole grid (ring 1 << 20) every row with k others.
+TEST(UniformGrid, KnnInWideBlockRowsAreTheTrees) {
+    ShapeOptions o;
+    o.points = 6000;
+    o.noise = 0.02;
+    std::vector<Vec3f> pts = SampleShape(Shape::kTorus, o).positions;
+    for (int i = 0; i < 12; ++i) pts.emplace_back(2.0f + 0.3f * i, 0.1f * i, 0.0f);  // sparse
+    const int k = 12;
+    const KdTree tree(pts);
+    const KnnTable want = TreeRows(tree, k);
+    const UniformGrid grid(pts, 0.05f);  // small cells: many rows reach past 3 x 3 x 3
+    ASSERT_TRUE(grid.dense());
+    const std::size_t n = pts.size();
+    for (const int max_ring : {3, 1 << 20}) {
+        std::vector<std::uint32_t> indices(n * k, UINT32_MAX);
+        std::vector<float> dist2(n * k, -1.0f);
+        std::vector<std::uint8_t> answered(n, 0);
+        grid.KnnInBlock(k, indices.data(), dist2.data(), answered.data(), {});
+        std::vector<std::uint32_t> rest;
+        for (std::size_t i = 0; i < n; ++i)
+            if (!answered[i]) rest.push_back(static_cast<std::uint32_t>(i));
+        ASSERT_GT(rest.size(), 100u);
+        std::size_t calls = 0;
+        grid.KnnInWideBlock(pts, rest, k, 2, max_ring, indices.data(), dist2.data(), answered.data(),
+                            [&](std::size_t rows) { calls += rows; });
+        EXPECT_EQ(calls, rest.size());
+        std::size_t left = 0;
+        for (std::size_t i = 0; i < n; ++i) {
+            if (!answered[i]) {
+                ++left;
+                continue;
+            }
+            for (int j = 0; j < k; ++j) {
+                ASSERT_EQ(indices[i * k + j], want.Row(i)[j]) << "row " << i << " rank " << j << " ring " << max_ring;
+                ASSERT_EQ(dist2[i * k + j], want.Dist2(i)[j]) << "row " << i << " rank " << j << " ring " << max_ring;
+            }
+        }
+        if (max_ring == 3) EXPECT_GT(left, 0u);  // the sparse points reach past 7 x 7 x 7
+        else EXPECT_EQ(left, 0u);
+        EXPECT_LT(left, rest.size());
+    }
+}
+
 // The same neighbours whatever the thread count (KnnAll's queries run in parallel).
 TEST(KdTree, SameNeighboursWhateverTheThreadCount) {
     ShapeOptions o;
