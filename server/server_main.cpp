@@ -16,6 +16,7 @@
 #include <fstream>
 #include <iostream>
 #include <memory>
+#include <optional>
 #include <sstream>
 #include <thread>
 
@@ -94,6 +95,7 @@ struct Flags {
     std::size_t max_queued = 256;
     std::size_t ingest_threads = 2;
     std::size_t ingest_queue = 64;
+    std::size_t upload_threads = 2;
     double upload_window_mib = 8;
     double max_upload_mb = 2048;
     std::uint64_t max_points = 50'000'000;
@@ -207,6 +209,12 @@ int main(int argc, char** argv) {
                    "(the bytes are kept: the client resumes)")
         ->default_val(64)
         ->check(CLI::Range(1, 100000));
+    app.add_option("--upload-threads", f.upload_threads,
+                   "Threads that append and hash the chunks of gRPC uploads while gRPC's threads receive "
+                   "the next ones (each upload reads at most 2 MiB ahead); 0 = append each chunk on the "
+                   "gRPC thread that received it, before the next is read")
+        ->default_val(2)
+        ->check(CLI::Range(0, 256));
     app.add_option("--upload-window-mib", f.upload_window_mib,
                    "HTTP/2 receive window of each gRPC stream in MiB (what a client may send ahead of "
                    "the server: an upload's bytes in flight); 0 = gRPC's adaptive window, which "
@@ -369,6 +377,9 @@ int main(int argc, char** argv) {
         // Declared before the service and the server: it outlives both, and runs its queue dry
         // while server->Shutdown waits for the upload calls its tasks finish.
         server::Executor ingest(f.ingest_threads, f.ingest_queue);
+        // The same for the upload writers; each upload call queues at most one task at a time.
+        std::optional<server::Executor> upload_writers;
+        if (f.upload_threads > 0) upload_writers.emplace(f.upload_threads, 4096);
         server::Operations ops(store, jobs, metrics, ingest, limits);
         ops.SetRetention(&retention);
         if (!f.auth_tokens.empty()) {
@@ -376,7 +387,7 @@ int main(int argc, char** argv) {
             spdlog::info("auth: {} tenants from {}", tokens.size(), f.auth_tokens);
             ops.SetAuthenticator(server::Authenticator(std::move(tokens)));
         }
-        server::SurfelService service(ops);
+        server::SurfelService service(ops, upload_writers ? &*upload_writers : nullptr);
         const std::shared_ptr<grpc::ServerCredentials> credentials = GrpcCredentials(f);
 
         grpc::EnableDefaultHealthCheckService(true);
@@ -491,6 +502,7 @@ int main(int argc, char** argv) {
         if (http) http->Stop();
         jobs.Shutdown(static_cast<std::int64_t>(f.grace_s * 1000));
         server->Shutdown(std::chrono::system_clock::now() + std::chrono::seconds(2));
+        if (upload_writers) upload_writers->Stop();  // the same for the writers' last tasks
         ingest.Stop();  // its last tasks may still be returning from Finish; ops outlives them
         done = true;
         gauge.join();

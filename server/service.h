@@ -14,11 +14,14 @@
 namespace surfel::server {
 
 /// The gRPC front: each call translated into Operations (operations.h). `ops` must outlive it, and
-/// its ingest Executor must also outlive the grpc::Server that runs it (its tasks finish upload
-/// calls, and the server's Shutdown waits for those).
+/// its ingest Executor, like `upload_writers`, must also outlive the grpc::Server that runs it
+/// (their tasks finish upload calls, and the server's Shutdown waits for those).
+/// `upload_writers` (optional) appends and hashes the chunks of Upload calls while gRPC's threads
+/// receive the next ones (upload_reactor.cpp); without it a chunk is appended in its reaction.
 class SurfelService final : public v1::Surfel::CallbackService {
 public:
-    explicit SurfelService(Operations& ops) : ops_(ops) {}
+    explicit SurfelService(Operations& ops, Executor* upload_writers = nullptr)
+        : ops_(ops), upload_writers_(upload_writers) {}
 
     grpc::ServerReadReactor<v1::UploadRequest>* Upload(grpc::CallbackServerContext* ctx, v1::Cloud* response) override;
     grpc::ServerUnaryReactor* QueryUpload(grpc::CallbackServerContext* ctx, const v1::QueryUploadRequest* req,
@@ -47,6 +50,8 @@ public:
     Metrics& metrics() { return ops_.metrics(); }
     /// Where uploads are hashed (on resume) and parsed.
     Executor& ingest() { return ops_.ingest(); }
+    /// Where Upload calls append and hash their chunks; null: in gRPC's reactions.
+    Executor* upload_writers() { return upload_writers_; }
     const ServiceLimits& limits() const { return ops_.limits(); }
     /// The caller of a call: its `authorization: Bearer <token>` metadata through
     /// Operations::auth(). Throws Error(kUnauthenticated) when auth is on and it is missing or
@@ -55,6 +60,7 @@ public:
 
 private:
     Operations& ops_;
+    Executor* upload_writers_;
 };
 
 }  // namespace surfel::server
