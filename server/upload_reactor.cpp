@@ -21,13 +21,13 @@ using worker::CurrentExceptionStatus;
 // ---- Upload reactor ---------------------------------------------------------------------------
 //
 // Two stages (issue 19.3). The reader, OnReadDone on gRPC's threads, only queues each received
-// message and starts the next read at once; the writer, a task on the service's upload writer
+// message and starts the next read at once; the writer, a task on the service's transfer
 // Executor, takes the queued messages in order and does the rest: checks the message against
 // the upload's state, appends its chunk to the part file and hashes it (UploadSession::Append).
 // So receiving the next chunk overlaps writing and hashing this one. The reader runs ahead by at
 // most kAheadBytes (and kAheadMessages) of messages received and not yet appended; then it
 // pauses, and the writer starts the next read when it has caught up. Without a writer Executor
-// (--upload-threads 0) the writer runs inline in OnReadDone and nothing is read ahead: one chunk
+// (--transfer-threads 0) the writer runs inline in OnReadDone and nothing is read ahead: one chunk
 // appended, then the next read, as before the two stages.
 //
 // The writer owns the UploadSession and is the only one to end the call: an error of the message
@@ -57,7 +57,7 @@ class UploadReactor final : public grpc::ServerReadReactor<v1::UploadRequest> {
     static constexpr std::size_t kAheadMessages = 16;
 
     UploadReactor(SurfelService& service, const Caller& caller, v1::Cloud* response)
-        : service_(service), caller_(caller), response_(response), writers_(service.upload_writers()) {
+        : service_(service), caller_(caller), response_(response), writers_(service.transfers()) {
         StartRead(&request_);
     }
 

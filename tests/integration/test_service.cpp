@@ -268,14 +268,14 @@ TEST_F(ServiceTest, UploadResumesAtTheCommittedSize) {
 // The server reads ahead of its writer (upload_reactor.cpp): messages received after one that
 // ends the call are dropped, and those before a broken stream's end are all appended. The
 // committed sizes must be those of a server that appends each chunk before reading the next
-// (--upload-threads 0), whatever the client sends after the failing message.
+// (--transfer-threads 0), whatever the client sends after the failing message.
 TEST_F(ServiceTest, ChunksReadAheadAreCommittedExactlyUpToTheFailingMessage) {
     const std::string bytes = ReadFileBytes(Path("torus.ply"));
     constexpr std::size_t kChunk = 4096;
     ASSERT_GT(bytes.size(), 60 * kChunk);
     for (const char* threads : {"0", "2"}) {
-        SCOPED_TRACE(std::string("--upload-threads ") + threads);
-        testing::ServerProcess server(data_ + "-" + threads, {"--upload-threads", threads});
+        SCOPED_TRACE(std::string("--transfer-threads ") + threads);
+        testing::ServerProcess server(data_ + "-" + threads, {"--transfer-threads", threads});
         auto stub = v1::Surfel::NewStub(grpc::CreateChannel(server.target(), grpc::InsecureChannelCredentials()));
         const auto committed = [&](const std::string& id) {
             grpc::ClientContext ctx;
