@@ -1,16 +1,20 @@
 #!/usr/bin/env python3
 """A/B of `surfel upload` end to end (issue 19.3): for each LABEL=BINDIR, a fresh surfel-server on a
 fresh data dir per round, the real CLI, interleaved rounds, medians; the server's CPU from /proc.
-usage: bench/ab_upload.py FILE ROUNDS label=bindir [label=bindir ...]"""
+usage: bench/ab_upload.py FILE ROUNDS label=bindir[@server args] [label=bindir[@server args] ...]
+(e.g. new0="build-bench/bin@--transfer-threads 0": the same binaries, the server started with those flags)"""
 import resource, json, os, shutil, signal, statistics, subprocess, sys, tempfile, time
 f, rounds = sys.argv[1], int(sys.argv[2])
 bins = [a.split("=", 1) for a in sys.argv[3:]]
+EXTRA = {}
+for l, b in bins:
+    EXTRA[b] = b.split("@")[1].split() if "@" in b else []
 res = {l: {"time_ms": [], "wall_ms": []} for l, _ in bins}
 size = os.path.getsize(f)
 def one(bindir):
     d = tempfile.mkdtemp(prefix="m-", dir=tempfile.gettempdir())
     pf = d + "/port"
-    srv = subprocess.Popen([bindir + "/surfel-server", "--port", "0", "--port-file", pf, "--data-dir", d + "/d",
+    srv = subprocess.Popen([bindir.split("@")[0] + "/surfel-server"] + EXTRA[bindir] + ["--port", "0", "--port-file", pf, "--data-dir", d + "/d",
                             "--log-level", "warn"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     while not os.path.exists(pf) or not open(pf).read().strip(): time.sleep(0.001)
     port = open(pf).read().strip()
@@ -20,7 +24,7 @@ def one(bindir):
         return (int(st[11]) + int(st[12])) * 1000.0 / tck
     s0 = scpu()
     t = time.perf_counter()
-    p = subprocess.Popen([bindir + "/surfel", "upload", f, "--server", "127.0.0.1:" + port, "-q", "--json"],
+    p = subprocess.Popen([bindir.split("@")[0] + "/surfel", "upload", f, "--server", "127.0.0.1:" + port, "-q", "--json"],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     so, se = p.communicate()
     _, _, ru = os.wait4(p.pid, 0) if False else (0, 0, None)

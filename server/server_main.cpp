@@ -16,6 +16,7 @@
 #include <fstream>
 #include <iostream>
 #include <memory>
+#include <optional>
 #include <sstream>
 #include <thread>
 
@@ -94,6 +95,7 @@ struct Flags {
     std::size_t max_queued = 256;
     std::size_t ingest_threads = 2;
     std::size_t ingest_queue = 64;
+    std::size_t transfer_threads = 2;
     double upload_window_mib = 8;
     double max_upload_mb = 2048;
     std::uint64_t max_points = 50'000'000;
@@ -207,6 +209,13 @@ int main(int argc, char** argv) {
                    "(the bytes are kept: the client resumes)")
         ->default_val(64)
         ->check(CLI::Range(1, 100000));
+    app.add_option("--transfer-threads", f.transfer_threads,
+                   "Threads that append and hash the chunks of gRPC uploads while gRPC's threads receive "
+                   "the next ones (each upload reads at most 2 MiB ahead), and read and hash the next "
+                   "chunk of a download while gRPC's threads send the last; 0 = both on gRPC's threads, "
+                   "one chunk at a time")
+        ->default_val(2)
+        ->check(CLI::Range(0, 256));
     app.add_option("--upload-window-mib", f.upload_window_mib,
                    "HTTP/2 receive window of each gRPC stream in MiB (what a client may send ahead of "
                    "the server: an upload's bytes in flight); 0 = gRPC's adaptive window, which "
@@ -369,6 +378,9 @@ int main(int argc, char** argv) {
         // Declared before the service and the server: it outlives both, and runs its queue dry
         // while server->Shutdown waits for the upload calls its tasks finish.
         server::Executor ingest(f.ingest_threads, f.ingest_queue);
+        // The same for the transfer threads; each upload or download queues one task at most.
+        std::optional<server::Executor> transfers;
+        if (f.transfer_threads > 0) transfers.emplace(f.transfer_threads, 4096);
         server::Operations ops(store, jobs, metrics, ingest, limits);
         ops.SetRetention(&retention);
         if (!f.auth_tokens.empty()) {
@@ -376,7 +388,7 @@ int main(int argc, char** argv) {
             spdlog::info("auth: {} tenants from {}", tokens.size(), f.auth_tokens);
             ops.SetAuthenticator(server::Authenticator(std::move(tokens)));
         }
-        server::SurfelService service(ops);
+        server::SurfelService service(ops, transfers ? &*transfers : nullptr);
         const std::shared_ptr<grpc::ServerCredentials> credentials = GrpcCredentials(f);
 
         grpc::EnableDefaultHealthCheckService(true);
@@ -491,6 +503,7 @@ int main(int argc, char** argv) {
         if (http) http->Stop();
         jobs.Shutdown(static_cast<std::int64_t>(f.grace_s * 1000));
         server->Shutdown(std::chrono::system_clock::now() + std::chrono::seconds(2));
+        if (transfers) transfers->Stop();  // the same for the transfer threads' last tasks
         ingest.Stop();  // its last tasks may still be returning from Finish; ops outlives them
         done = true;
         gauge.join();

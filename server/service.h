@@ -14,11 +14,14 @@
 namespace surfel::server {
 
 /// The gRPC front: each call translated into Operations (operations.h). `ops` must outlive it, and
-/// its ingest Executor must also outlive the grpc::Server that runs it (its tasks finish upload
-/// calls, and the server's Shutdown waits for those).
+/// its ingest Executor, like `transfers`, must also outlive the grpc::Server that runs it (their
+/// tasks finish upload and download calls, and the server's Shutdown waits for those).
+/// `transfers` (optional) appends and hashes the chunks of Upload calls while gRPC's threads
+/// receive the next ones (upload_reactor.cpp), and reads and hashes the next chunk of a Download
+/// while gRPC's threads send the last (download_reactor.cpp); without it, both in the reactions.
 class SurfelService final : public v1::Surfel::CallbackService {
 public:
-    explicit SurfelService(Operations& ops) : ops_(ops) {}
+    explicit SurfelService(Operations& ops, Executor* transfers = nullptr) : ops_(ops), transfers_(transfers) {}
 
     grpc::ServerReadReactor<v1::UploadRequest>* Upload(grpc::CallbackServerContext* ctx, v1::Cloud* response) override;
     grpc::ServerUnaryReactor* QueryUpload(grpc::CallbackServerContext* ctx, const v1::QueryUploadRequest* req,
@@ -47,6 +50,9 @@ public:
     Metrics& metrics() { return ops_.metrics(); }
     /// Where uploads are hashed (on resume) and parsed.
     Executor& ingest() { return ops_.ingest(); }
+    /// Where Upload calls append and hash their chunks and Download calls read and hash theirs;
+    /// null: in gRPC's reactions.
+    Executor* transfers() { return transfers_; }
     const ServiceLimits& limits() const { return ops_.limits(); }
     /// The caller of a call: its `authorization: Bearer <token>` metadata through
     /// Operations::auth(). Throws Error(kUnauthenticated) when auth is on and it is missing or
@@ -55,6 +61,7 @@ public:
 
 private:
     Operations& ops_;
+    Executor* transfers_;
 };
 
 }  // namespace surfel::server

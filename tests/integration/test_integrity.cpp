@@ -125,5 +125,53 @@ TEST_F(IntegrityTest, AResultRecordsItsSha256AndAFlippedByteFailsItsDownload) {
     }
 }
 
+// The server reads and hashes the next chunk of a download while the last is sent (on its
+// transfer threads; --transfer-threads 0: one chunk at a time on gRPC's): the same chunks either
+// way, and on a corrupt result every chunk but the last arrives, then DATA_LOSS.
+TEST_F(IntegrityTest, ADownloadReadAheadSendsTheSameChunksAndHoldsTheLastBackOnDataLoss) {
+    ShapeOptions o;
+    o.points = 60000;
+    o.normals = true;
+    WritePly(SampleShape(Shape::kTorus, o), (dir_ / "torus.ply").string());
+    for (const char* threads : {"0", "2"}) {
+        SCOPED_TRACE(std::string("--transfer-threads ") + threads);
+        const std::string data = (dir_ / ("data-" + std::string(threads))).string();
+        testing::ServerProcess server(data, {"--transfer-threads", threads});
+        ServiceClient c(server.target());
+        const std::string cloud = c.UploadFile((dir_ / "torus.ply").string()).id();
+        const v1::Job job = c.Submit(Simplify(cloud, 50000));
+        const auto out = c.Watch(job.id(), true, false);
+        ASSERT_EQ(out.state, v1::SUCCEEDED) << out.status_message;
+        const std::size_t chunk = 256 << 10;  // the server's download_chunk_bytes
+        ASSERT_GT(out.bytes.size(), 3 * chunk);
+        auto stub = v1::Surfel::NewStub(grpc::CreateChannel(server.target(), grpc::InsecureChannelCredentials()));
+        // Every chunk in order, each at its offset, and the status at the end.
+        const auto download = [&](std::string* bytes) {
+            grpc::ClientContext ctx;
+            v1::DownloadRequest req;
+            req.set_job_id(job.id());
+            auto reader = stub->Download(&ctx, req);
+            v1::DataChunk d;
+            while (reader->Read(&d)) {
+                EXPECT_EQ(d.offset(), static_cast<std::int64_t>(bytes->size()));
+                EXPECT_EQ(d.total_size(), static_cast<std::int64_t>(out.bytes.size()));
+                EXPECT_LE(d.data().size(), chunk);
+                bytes->append(d.data());
+            }
+            return reader->Finish();
+        };
+        std::string bytes;
+        const grpc::Status ok = download(&bytes);
+        ASSERT_TRUE(ok.ok()) << ok.error_message();
+        EXPECT_EQ(bytes, out.bytes);
+        FlipByte(fs::path(data) / "results" / job.id(), static_cast<std::streamoff>(chunk + 5));
+        std::string cut;
+        const grpc::Status lost = download(&cut);
+        EXPECT_EQ(lost.error_code(), grpc::StatusCode::DATA_LOSS) << lost.error_message();
+        const std::size_t last = out.bytes.size() % chunk ? out.bytes.size() % chunk : chunk;
+        EXPECT_EQ(cut.size(), out.bytes.size() - last);
+    }
+}
+
 }  // namespace
 }  // namespace surfel

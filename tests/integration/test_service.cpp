@@ -19,6 +19,7 @@
 #include "surfel/io/image.h"
 #include "surfel/io/ply.h"
 #include "surfel/io/file_bytes.h"
+#include "surfel/worker/sha256.h"
 
 namespace surfel {
 namespace {
@@ -262,6 +263,78 @@ TEST_F(ServiceTest, UploadResumesAtTheCommittedSize) {
     EXPECT_EQ(cloud.points(), 5000u);
     ServiceClient c(server.target());
     EXPECT_EQ(c.UploadFile(Path("sphere.ply")).id(), cloud.id());  // the whole file's hash
+}
+
+// The server reads ahead of its writer (upload_reactor.cpp): messages received after one that
+// ends the call are dropped, and those before a broken stream's end are all appended. The
+// committed sizes must be those of a server that appends each chunk before reading the next
+// (--transfer-threads 0), whatever the client sends after the failing message.
+TEST_F(ServiceTest, ChunksReadAheadAreCommittedExactlyUpToTheFailingMessage) {
+    const std::string bytes = ReadFileBytes(Path("torus.ply"));
+    constexpr std::size_t kChunk = 4096;
+    ASSERT_GT(bytes.size(), 60 * kChunk);
+    for (const char* threads : {"0", "2"}) {
+        SCOPED_TRACE(std::string("--transfer-threads ") + threads);
+        testing::ServerProcess server(data_ + "-" + threads, {"--transfer-threads", threads});
+        auto stub = v1::Surfel::NewStub(grpc::CreateChannel(server.target(), grpc::InsecureChannelCredentials()));
+        const auto committed = [&](const std::string& id) {
+            grpc::ClientContext ctx;
+            v1::QueryUploadRequest q;
+            q.set_upload_id(id);
+            v1::QueryUploadResponse r;
+            EXPECT_TRUE(stub->QueryUpload(&ctx, q, &r).ok());
+            return r.committed_size();
+        };
+        // Sends chunks [from, to) of `bytes` at once (no waiting between them), the chunk at
+        // `bad` with a wrong write_offset; then ends the stream without finish_write.
+        const auto send = [&](const std::string& id, std::size_t from, std::size_t to, std::size_t bad) {
+            grpc::ClientContext ctx;
+            v1::Cloud cloud;
+            auto w = stub->Upload(&ctx, &cloud);
+            for (std::size_t i = from; i < to; ++i) {
+                v1::UploadRequest r;
+                r.set_upload_id(id);
+                r.set_filename("torus.ply");
+                r.set_write_offset(static_cast<std::int64_t>(i == bad ? i * kChunk + 1 : i * kChunk));
+                r.set_data(bytes.substr(i * kChunk, kChunk));
+                if (!w->Write(r)) break;  // the server ended the call
+            }
+            w->WritesDone();
+            return w->Finish();
+        };
+        const grpc::Status broken = send("ahead-broken", 0, 40, SIZE_MAX);
+        EXPECT_EQ(broken.error_code(), grpc::StatusCode::FAILED_PRECONDITION) << broken.error_message();
+        EXPECT_NE(broken.error_message().find("resume at write_offset " + std::to_string(40 * kChunk)),
+                  std::string::npos)
+            << broken.error_message();
+        EXPECT_EQ(committed("ahead-broken"), static_cast<std::int64_t>(40 * kChunk));
+
+        const grpc::Status refused = send("ahead-refused", 0, 60, 25);
+        EXPECT_EQ(refused.error_code(), grpc::StatusCode::FAILED_PRECONDITION) << refused.error_message();
+        EXPECT_NE(refused.error_message().find("write_offset " + std::to_string(25 * kChunk + 1)),
+                  std::string::npos)
+            << refused.error_message();
+        EXPECT_EQ(committed("ahead-refused"), static_cast<std::int64_t>(25 * kChunk));
+
+        // The broken upload resumes where it stopped and is stored under the file's SHA-256.
+        grpc::ClientContext ctx;
+        v1::Cloud cloud;
+        auto w = stub->Upload(&ctx, &cloud);
+        for (std::size_t off = 40 * kChunk; off < bytes.size(); off += kChunk) {
+            v1::UploadRequest r;
+            r.set_upload_id("ahead-broken");
+            r.set_write_offset(static_cast<std::int64_t>(off));
+            r.set_data(bytes.substr(off, kChunk));
+            r.set_finish_write(off + kChunk >= bytes.size());
+            ASSERT_TRUE(w->Write(r));
+        }
+        w->WritesDone();
+        const grpc::Status s = w->Finish();
+        ASSERT_TRUE(s.ok()) << s.error_message();
+        EXPECT_EQ(cloud.id(), worker::Sha256Hex(bytes));
+        EXPECT_EQ(cloud.points(), 40000u);
+        EXPECT_EQ(committed("ahead-broken"), 0);
+    }
 }
 
 TEST_F(ServiceTest, LimitsGiveResourceExhausted) {
