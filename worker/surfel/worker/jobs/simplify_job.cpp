@@ -18,11 +18,11 @@ std::uint64_t SimplifyBytesPerPoint(SimplifyMethod method) {
     switch (method) {
         case SimplifyMethod::kHierarchical: return 80;
         case SimplifyMethod::kIncremental: return 140;  // region growing's neighbour lists
-        case SimplifyMethod::kIterative: return 600;    // quadrics, the pair graph and its heap
-        case SimplifyMethod::kParticle: return 240;     // the particle engine on the input's MLS surface
+        case SimplifyMethod::kIterative: return 400;    // quadrics, the pair graph and its heap
+        case SimplifyMethod::kParticle: return 170;     // the particle engine on the input's MLS surface
         case SimplifyMethod::kVoxel: return 80;
     }
-    return 600;
+    return 400;
 }
 
 // ---- proto -> SimplifyOptions ----------------------------------------------------------------
