@@ -638,7 +638,7 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
             __builtin_prefetch(&node[next_mate]);
             __builtin_prefetch(reinterpret_cast<const char*>(&node[next_mate]) + 64);
         }
-        // While the first wave's lines come in: the pair's new point and quadric, v out of the heap.
+        // While the first wave's lines come in: the pair's point and quadric, v out of the heap.
         node[u].p = f.x;
         node[u].q += node[v].q;
         alive[v] = 0;

@@ -552,7 +552,8 @@ TEST(Simplify, IterativeLookAheadGuessesDoNotChangeTheContractions) {
         }
     for (const std::size_t target : {60u, 300u, 1500u}) {
         SCOPED_TRACE("target " + std::to_string(target));
-        const std::vector<Vec3f> ref = reference::IterativeSimplify(cloud.positions, cloud.normals, target, 6, 1e-3);
+        const std::vector<Vec3f> ref =
+            reference::IterativeSimplify(cloud.positions, cloud.normals, target, 6, 1e-3);
         const PointCloud got = RunSimplify(cloud, SimplifyMethod::kIterative, target).cloud;
         ASSERT_EQ(got.size(), target);
         ASSERT_EQ(ref.size(), target);
