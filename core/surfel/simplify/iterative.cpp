@@ -223,6 +223,15 @@ public:
         }
     }
     std::uint32_t top() const { return heap_[0].node; }
+    /// The least of the top's children: the top after it, unless a key changes before.
+    std::uint32_t RunnerUp() const {
+        if (size_ < 2) return kNone;
+        const std::uint32_t end = std::min<std::uint32_t>(5, size_);
+        std::uint32_t m = 1;
+        for (std::uint32_t j = 2; j < end; ++j)
+            if (Less(heap_[j], heap_[m])) m = j;
+        return heap_[m].node;
+    }
     /// Asks for node u's position (first wave) or its slot (second wave) ahead of an Update.
     void PrefetchPosition(std::uint32_t u) const { __builtin_prefetch(&pos_[u]); }
     void PrefetchSlot(std::uint32_t u) const {
@@ -399,31 +408,30 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
     // pool's smaller room).
     knn = KnnTable{};
     auto& graph = graph_storage;  // input indices
-    // Each node's row (its list's place and room come with the pool) and position.
-    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 4096), [&](const tbb::blocked_range<std::size_t>& r) {
-        for (std::size_t i = r.begin(); i != r.end(); ++i) {
-            auto b = graph.begin() + first[i], e = graph.begin() + first[i + 1];
-            std::sort(b, e);
-            node[i].row = {first[i], static_cast<std::uint32_t>(std::unique(b, e) - b), 0, 0};
-            node[i].p = points[input_of[i]].cast<double>();
-        }
-    });
-
+    // Each node's row (its list's place and room come with the pool), position and quadric, in one
+    // pass (session 15: the quadrics' own pass read each neighbour's position from its node record
+    // through `at`; the input's float point is the same value).
     // Quadrics: one tangent plane per edge, spanned by e_i = p - p_i and b_i = e_i x n (the sign
     // of n does not matter: a quadric holds n n^T, d n and d^2).
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 4096), [&](const tbb::blocked_range<std::size_t>& r) {
         for (std::size_t i = r.begin(); i != r.end(); ++i) {
+            auto b = graph.begin() + first[i], e = graph.begin() + first[i + 1];
+            std::sort(b, e);
+            const auto degree = static_cast<std::uint32_t>(std::unique(b, e) - b);
+            const Eigen::Vector3d p = points[input_of[i]].cast<double>();
             const Eigen::Vector3d ni = normals[input_of[i]].cast<double>();
             Quadric q{};
-            for (std::uint32_t e = first[i]; e < first[i] + node[i].row.degree; ++e) {
-                const Eigen::Vector3d d = node[i].p - node[at[graph[e]]].p;
+            for (auto it = b; it != b + degree; ++it) {
+                const Eigen::Vector3d d = p - points[*it].cast<double>();
                 Eigen::Vector3d plane = d.cross(d.cross(ni));
                 const double len = plane.norm();
                 plane = len > 1e-300 ? Eigen::Vector3d(plane / len) : ni;
                 if (plane.dot(ni) < 0) plane = -plane;
-                q.AddPlane(plane, node[i].p);
+                q.AddPlane(plane, p);
             }
-            if (node[i].row.degree == 0) q.AddPlane(ni, node[i].p);
+            if (degree == 0) q.AddPlane(ni, p);
+            node[i].row = {first[i], degree, 0, 0};
+            node[i].p = p;
             node[i].q = q;
         }
     });
@@ -600,6 +608,21 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
         };
         prefetch_row(u);
         prefetch_row(v);
+        // Look-ahead (session 15): the next contraction's pair is, nearly always, the heap's second
+        // (the least of the top's children: a contraction seldom makes a pair cheaper than that or
+        // touches it; on the merged scans it was the next top at 358,610 of 358,648 contractions,
+        // and touched by the contraction before at 22). Its chain (key and mate, the two records,
+        // their lists, the neighbours' records and keys) is asked for one link at a time, spread
+        // over this contraction so that each link has come in when the next needs it; the first
+        // wave of the next contraction then finds its lines in the cache. Prefetches only: the
+        // contractions are the same whatever the guess.
+        const std::uint32_t next = heap.RunnerUp();
+        if (next != kNone) {
+            __builtin_prefetch(&best[next]);
+            __builtin_prefetch(&mate[next]);
+            __builtin_prefetch(&node[next]);
+            __builtin_prefetch(reinterpret_cast<const char*>(&node[next]) + 64);
+        }
         const PairFit f = fit(u, v, u_input, v_input);
         for (const std::uint32_t x : {u, v})
             for (std::uint32_t e = node[x].row.start; e < node[x].row.start + node[x].row.degree; ++e) {
@@ -610,16 +633,22 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
                 __builtin_prefetch(&mate[w]);
                 heap.PrefetchPosition(w);
             }
-        for (const std::uint32_t x : {u, v})
-            for (std::uint32_t e = node[x].row.start; e < node[x].row.start + node[x].row.degree; ++e) {
-                prefetch_row(pool[e].id);
-                heap.PrefetchSlot(pool[e].id);
-            }
+        const std::uint32_t next_mate = next != kNone ? mate[next] : kNone;
+        if (next_mate < n) {
+            __builtin_prefetch(&node[next_mate]);
+            __builtin_prefetch(reinterpret_cast<const char*>(&node[next_mate]) + 64);
+        }
+        // While the first wave's lines come in: the pair's point and quadric, v out of the heap.
         node[u].p = f.x;
         node[u].q += node[v].q;
         alive[v] = 0;
         parent[v] = u;
         heap.Remove(v);
+        for (const std::uint32_t x : {u, v})
+            for (std::uint32_t e = node[x].row.start; e < node[x].row.start + node[x].row.degree; ++e) {
+                prefetch_row(pool[e].id);
+                heap.PrefetchSlot(pool[e].id);
+            }
 
         // u's new neighbours: its own and v's, without u and v. v's neighbours now point to u.
         ++epoch;
@@ -654,11 +683,26 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
             pool.resize(pool.size() + cap);
         }
         node[u].row.degree = static_cast<std::uint32_t>(merged.size());
+        if (next_mate < n && next != v && next_mate != v) {  // the next pair's lists
+            prefetch_row(next);
+            prefetch_row(next_mate);
+        }
         for (std::size_t j = 0; j < merged.size(); ++j) {
             const std::uint32_t w = merged[j].id;
             const double cost = cost_of(u, w, u_input, merged[j].input);
             pool[node[u].row.start + j] = {cost, w, merged[j].input};
             set_cost_at(w, merged[j].input, u, u_input, cost, v_input);
+        }
+        if (next_mate < n && next != v && next_mate != v) {  // the next pair's neighbours
+            for (const std::uint32_t x : {next, next_mate})
+                for (std::uint32_t e = node[x].row.start; e < node[x].row.start + node[x].row.degree; ++e) {
+                    const std::uint32_t w = pool[e].id;
+                    __builtin_prefetch(&node[w]);
+                    __builtin_prefetch(reinterpret_cast<const char*>(&node[w]) + 64);
+                    __builtin_prefetch(&best[w]);
+                    __builtin_prefetch(&mate[w]);
+                    heap.PrefetchPosition(w);
+                }
         }
         rescan(u, u_input);
         heap.Update(u);
