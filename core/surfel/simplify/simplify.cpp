@@ -198,8 +198,13 @@ PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> nor
         return input_tree->Nearest(p).index;
     };
 
-    std::unique_ptr<KdTree> out_tree;  // over the representatives: normals (when estimated) and radii
+    // Over the representatives: one k-nearest table (KnnAll, nearest first, ties by index) for
+    // all their neighbour searches where normals are found here: its first column is the radii's
+    // nearest other representative, its first orient_k columns the orientation graph, all its
+    // columns the covariance neighbourhoods (the rows each separate search gave).
+    std::unique_ptr<KdTree> out_tree;
     if (m >= 2) out_tree = std::make_unique<KdTree>(out.positions);
+    KnnTable out_knn;
     if (!normals.empty()) {
         out.normals.resize(m);
         for (std::size_t c = 0; c < m; ++c) {
@@ -211,24 +216,34 @@ PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> nor
         // The clusters' own normals (hierarchical: the v0 of each cluster's covariance, notes
         // 1.2, over all of its members), oriented over the representatives (notes 1.2, MST). A
         // cluster too small or too thin for a plane takes the covariance normal of its nearest
-        // representatives.
+        // representatives: the 16 nearest of its own position, itself included (KdTree::Knn),
+        // which are itself ranked into its table row by (distance, index) at distance 0.
         out.normals = clusters.normals;
-        std::vector<Neighbor> near;
+        const int kn = std::min<int>(16, static_cast<int>(m));
+        out_knn = out_tree->KnnAll(std::min<int>(16, static_cast<int>(m) - 1));
+        std::vector<std::uint32_t> idx;
         for (std::size_t c = 0; c < m; ++c) {
             if (out.normals[c] != Vec3f::Zero()) continue;
-            out_tree->Knn(out.positions[c], std::min<int>(16, static_cast<int>(m)), &near);
-            std::vector<std::uint32_t> idx;
-            for (const Neighbor& nb : near) idx.push_back(nb.index);
+            const auto row = out_knn.Row(c);
+            const auto d2 = out_knn.Dist2(c);
+            const auto self = static_cast<std::uint32_t>(c);
+            idx.clear();
+            std::size_t j = 0;
+            while (static_cast<int>(idx.size()) < kn && j < row.size() && d2[j] == 0.0f && row[j] < self)
+                idx.push_back(row[j++]);
+            if (static_cast<int>(idx.size()) < kn) idx.push_back(self);
+            while (static_cast<int>(idx.size()) < kn) idx.push_back(row[j++]);
             out.normals[c] = AnalyzeNeighborhood(out.positions, idx).normal.cast<float>();
         }
         NormalOptions no;
         no.orient_k = std::min<int>(10, static_cast<int>(m) - 1);
-        OrientNormals(*out_tree, out.normals, no);
+        OrientNormals(out.positions, out_knn, out.normals, no);
     } else if (m >= 3) {
         NormalOptions no;
         no.k = std::min<int>(16, static_cast<int>(m) - 1);
         no.orient_k = std::min<int>(10, static_cast<int>(m) - 1);
-        out.normals = EstimateNormals(*out_tree, no).normals;
+        out_knn = out_tree->KnnAll(no.k);
+        out.normals = EstimateNormals(*out_tree, out_knn, no).normals;
     } else {
         out.normals.assign(m, Vec3f::UnitZ());
     }
@@ -255,7 +270,11 @@ PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> nor
         cover[c] = std::max(cover[c], d.norm());
     }
     out.radii.resize(m);
-    if (out_tree) {
+    if (out_knn.k) {
+        // The nearest other representative, from the table (KthNeighborDistances' values).
+        const std::vector<float> nn = NearestDistances(out.positions, out_knn);
+        for (std::size_t c = 0; c < m; ++c) out.radii[c] = std::max(cover[c], nn[c]);
+    } else if (out_tree) {
         // The nearest other representative (a grid, exact: the same as the tree's KnnAll(1)).
         const std::vector<float> nn = KthNeighborDistances(out.positions, 1, out_tree.get());
         for (std::size_t c = 0; c < m; ++c) out.radii[c] = std::max(cover[c], nn[c]);
