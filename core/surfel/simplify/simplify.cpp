@@ -198,6 +198,20 @@ PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> nor
         return input_tree->Nearest(p).index;
     };
 
+    // Splat radius: covers every member (3D distance, so also within the splat's plane), and
+    // reaches at least the nearest other representative so neighbouring splats overlap. The
+    // members' distances (one serial pass over the input, in input order) run beside the
+    // representatives' neighbour searches and orientation below.
+    std::vector<float> cover(m, 0.0f);
+    tbb::task_group cover_task;
+    cover_task.run([&] {
+        for (std::size_t i = 0; i < n; ++i) {
+            const std::uint32_t c = clusters.label[i];
+            const Vec3f d = input.positions[i] - out.positions[c];
+            cover[c] = std::max(cover[c], d.norm());
+        }
+    });
+
     // Over the representatives: one k-nearest table (KnnAll, nearest first, ties by index) for
     // all their neighbour searches where normals are found here: its first column is the radii's
     // nearest other representative, its first orient_k columns the orientation graph, all its
@@ -261,14 +275,7 @@ PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> nor
         }
     }
 
-    // Splat radius: covers every member (3D distance, so also within the splat's plane), and
-    // reaches at least the nearest other representative so neighbouring splats overlap.
-    std::vector<float> cover(m, 0.0f);
-    for (std::size_t i = 0; i < n; ++i) {
-        const std::uint32_t c = clusters.label[i];
-        const Vec3f d = input.positions[i] - out.positions[c];
-        cover[c] = std::max(cover[c], d.norm());
-    }
+    cover_task.wait();
     out.radii.resize(m);
     if (out_knn.k) {
         // The nearest other representative, from the table (KthNeighborDistances' values).
