@@ -203,8 +203,8 @@ PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> nor
     // members' distances (one serial pass over the input, in input order) run beside the
     // representatives' neighbour searches and orientation below.
     std::vector<float> cover(m, 0.0f);
-    tbb::task_group cover_task;
-    cover_task.run([&] {
+    tbb::task_group side;  // beside the normals: the cover distances, then the nearest distances
+    side.run([&] {
         for (std::size_t i = 0; i < n; ++i) {
             const std::uint32_t c = clusters.label[i];
             const Vec3f d = input.positions[i] - out.positions[c];
@@ -219,6 +219,7 @@ PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> nor
     std::unique_ptr<KdTree> out_tree;
     if (m >= 2) out_tree = std::make_unique<KdTree>(out.positions);
     KnnTable out_knn;
+    std::vector<float> nn;  // from out_knn: the nearest other representative
     if (!normals.empty()) {
         out.normals.resize(m);
         for (std::size_t c = 0; c < m; ++c) {
@@ -235,20 +236,23 @@ PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> nor
         out.normals = clusters.normals;
         const int kn = std::min<int>(16, static_cast<int>(m));
         out_knn = out_tree->KnnAll(std::min<int>(16, static_cast<int>(m) - 1));
-        std::vector<std::uint32_t> idx;
-        for (std::size_t c = 0; c < m; ++c) {
-            if (out.normals[c] != Vec3f::Zero()) continue;
-            const auto row = out_knn.Row(c);
-            const auto d2 = out_knn.Dist2(c);
-            const auto self = static_cast<std::uint32_t>(c);
-            idx.clear();
-            std::size_t j = 0;
-            while (static_cast<int>(idx.size()) < kn && j < row.size() && d2[j] == 0.0f && row[j] < self)
-                idx.push_back(row[j++]);
-            if (static_cast<int>(idx.size()) < kn) idx.push_back(self);
-            while (static_cast<int>(idx.size()) < kn) idx.push_back(row[j++]);
-            out.normals[c] = AnalyzeNeighborhood(out.positions, idx).normal.cast<float>();
-        }
+        side.run([&] { nn = NearestDistances(out.positions, out_knn); });
+        tbb::parallel_for(tbb::blocked_range<std::size_t>(0, m, 1024), [&](const tbb::blocked_range<std::size_t>& r) {
+            std::vector<std::uint32_t> idx;
+            for (std::size_t c = r.begin(); c != r.end(); ++c) {
+                if (out.normals[c] != Vec3f::Zero()) continue;
+                const auto row = out_knn.Row(c);
+                const auto d2 = out_knn.Dist2(c);
+                const auto self = static_cast<std::uint32_t>(c);
+                idx.clear();
+                std::size_t j = 0;
+                while (static_cast<int>(idx.size()) < kn && j < row.size() && d2[j] == 0.0f && row[j] < self)
+                    idx.push_back(row[j++]);
+                if (static_cast<int>(idx.size()) < kn) idx.push_back(self);
+                while (static_cast<int>(idx.size()) < kn) idx.push_back(row[j++]);
+                out.normals[c] = AnalyzeNeighborhood(out.positions, idx).normal.cast<float>();
+            }
+        });
         NormalOptions no;
         no.orient_k = std::min<int>(10, static_cast<int>(m) - 1);
         OrientNormals(out.positions, out_knn, out.normals, no);
@@ -257,6 +261,7 @@ PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> nor
         no.k = std::min<int>(16, static_cast<int>(m) - 1);
         no.orient_k = std::min<int>(10, static_cast<int>(m) - 1);
         out_knn = out_tree->KnnAll(no.k);
+        side.run([&] { nn = NearestDistances(out.positions, out_knn); });
         out.normals = EstimateNormals(*out_tree, out_knn, no).normals;
     } else {
         out.normals.assign(m, Vec3f::UnitZ());
@@ -275,15 +280,14 @@ PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> nor
         }
     }
 
-    cover_task.wait();
+    side.wait();
     out.radii.resize(m);
     if (out_knn.k) {
         // The nearest other representative, from the table (KthNeighborDistances' values).
-        const std::vector<float> nn = NearestDistances(out.positions, out_knn);
         for (std::size_t c = 0; c < m; ++c) out.radii[c] = std::max(cover[c], nn[c]);
     } else if (out_tree) {
         // The nearest other representative (a grid, exact: the same as the tree's KnnAll(1)).
-        const std::vector<float> nn = KthNeighborDistances(out.positions, 1, out_tree.get());
+        nn = KthNeighborDistances(out.positions, 1, out_tree.get());
         for (std::size_t c = 0; c < m; ++c) out.radii[c] = std::max(cover[c], nn[c]);
     } else {
         out.radii = cover;
