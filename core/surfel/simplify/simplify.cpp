@@ -198,8 +198,28 @@ PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> nor
         return input_tree->Nearest(p).index;
     };
 
-    std::unique_ptr<KdTree> out_tree;  // over the representatives: normals (when estimated) and radii
+    // Splat radius: covers every member (3D distance, so also within the splat's plane), and
+    // reaches at least the nearest other representative so neighbouring splats overlap. The
+    // members' distances (one serial pass over the input, in input order) run beside the
+    // representatives' neighbour searches and orientation below.
+    std::vector<float> cover(m, 0.0f);
+    tbb::task_group side;  // beside the normals: the cover distances, then the nearest distances
+    side.run([&] {
+        for (std::size_t i = 0; i < n; ++i) {
+            const std::uint32_t c = clusters.label[i];
+            const Vec3f d = input.positions[i] - out.positions[c];
+            cover[c] = std::max(cover[c], d.norm());
+        }
+    });
+
+    // Over the representatives: one k-nearest table (KnnAll, nearest first, ties by index) for
+    // all their neighbour searches where normals are found here: its first column is the radii's
+    // nearest other representative, its first orient_k columns the orientation graph, all its
+    // columns the covariance neighbourhoods (the rows each separate search gave).
+    std::unique_ptr<KdTree> out_tree;
     if (m >= 2) out_tree = std::make_unique<KdTree>(out.positions);
+    KnnTable out_knn;
+    std::vector<float> nn;  // from out_knn: the nearest other representative
     if (!normals.empty()) {
         out.normals.resize(m);
         for (std::size_t c = 0; c < m; ++c) {
@@ -211,24 +231,38 @@ PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> nor
         // The clusters' own normals (hierarchical: the v0 of each cluster's covariance, notes
         // 1.2, over all of its members), oriented over the representatives (notes 1.2, MST). A
         // cluster too small or too thin for a plane takes the covariance normal of its nearest
-        // representatives.
+        // representatives: the 16 nearest of its own position, itself included (KdTree::Knn),
+        // which are itself ranked into its table row by (distance, index) at distance 0.
         out.normals = clusters.normals;
-        std::vector<Neighbor> near;
-        for (std::size_t c = 0; c < m; ++c) {
-            if (out.normals[c] != Vec3f::Zero()) continue;
-            out_tree->Knn(out.positions[c], std::min<int>(16, static_cast<int>(m)), &near);
+        const int kn = std::min<int>(16, static_cast<int>(m));
+        out_knn = out_tree->KnnAll(std::min<int>(16, static_cast<int>(m) - 1));
+        side.run([&] { nn = NearestDistances(out.positions, out_knn); });
+        tbb::parallel_for(tbb::blocked_range<std::size_t>(0, m, 1024), [&](const tbb::blocked_range<std::size_t>& r) {
             std::vector<std::uint32_t> idx;
-            for (const Neighbor& nb : near) idx.push_back(nb.index);
-            out.normals[c] = AnalyzeNeighborhood(out.positions, idx).normal.cast<float>();
-        }
+            for (std::size_t c = r.begin(); c != r.end(); ++c) {
+                if (out.normals[c] != Vec3f::Zero()) continue;
+                const auto row = out_knn.Row(c);
+                const auto d2 = out_knn.Dist2(c);
+                const auto self = static_cast<std::uint32_t>(c);
+                idx.clear();
+                std::size_t j = 0;
+                while (static_cast<int>(idx.size()) < kn && j < row.size() && d2[j] == 0.0f && row[j] < self)
+                    idx.push_back(row[j++]);
+                if (static_cast<int>(idx.size()) < kn) idx.push_back(self);
+                while (static_cast<int>(idx.size()) < kn) idx.push_back(row[j++]);
+                out.normals[c] = AnalyzeNeighborhood(out.positions, idx).normal.cast<float>();
+            }
+        });
         NormalOptions no;
         no.orient_k = std::min<int>(10, static_cast<int>(m) - 1);
-        OrientNormals(*out_tree, out.normals, no);
+        OrientNormals(out.positions, out_knn, out.normals, no);
     } else if (m >= 3) {
         NormalOptions no;
         no.k = std::min<int>(16, static_cast<int>(m) - 1);
         no.orient_k = std::min<int>(10, static_cast<int>(m) - 1);
-        out.normals = EstimateNormals(*out_tree, no).normals;
+        out_knn = out_tree->KnnAll(no.k);
+        side.run([&] { nn = NearestDistances(out.positions, out_knn); });
+        out.normals = EstimateNormals(*out_tree, out_knn, no).normals;
     } else {
         out.normals.assign(m, Vec3f::UnitZ());
     }
@@ -246,18 +280,14 @@ PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> nor
         }
     }
 
-    // Splat radius: covers every member (3D distance, so also within the splat's plane), and
-    // reaches at least the nearest other representative so neighbouring splats overlap.
-    std::vector<float> cover(m, 0.0f);
-    for (std::size_t i = 0; i < n; ++i) {
-        const std::uint32_t c = clusters.label[i];
-        const Vec3f d = input.positions[i] - out.positions[c];
-        cover[c] = std::max(cover[c], d.norm());
-    }
+    side.wait();
     out.radii.resize(m);
-    if (out_tree) {
+    if (out_knn.k) {
+        // The nearest other representative, from the table (KthNeighborDistances' values).
+        for (std::size_t c = 0; c < m; ++c) out.radii[c] = std::max(cover[c], nn[c]);
+    } else if (out_tree) {
         // The nearest other representative (a grid, exact: the same as the tree's KnnAll(1)).
-        const std::vector<float> nn = KthNeighborDistances(out.positions, 1, out_tree.get());
+        nn = KthNeighborDistances(out.positions, 1, out_tree.get());
         for (std::size_t c = 0; c < m; ++c) out.radii[c] = std::max(cover[c], nn[c]);
     } else {
         out.radii = cover;

@@ -132,4 +132,42 @@ std::vector<float> KthNeighborDistances(std::span<const Vec3f> points, int k, co
     return r;
 }
 
+std::vector<float> NearestDistances(std::span<const Vec3f> points, const KnnTable& knn) {
+    const std::size_t n = points.size();
+    if (n < 2) return std::vector<float>(n, 0.0f);
+    SURFEL_CHECK(knn.size() == n && knn.k >= 1, knn.size() << " rows of " << knn.k << " neighbours for " << n << " points");
+    auto first_column = [&] {  // ViaTree's values: KnnAll(1)'s column is every KnnAll(K)'s first
+        std::vector<float> r(n);
+        for (std::size_t i = 0; i < n; ++i) r[i] = std::sqrt(knn.Dist2(i)[0]);
+        return r;
+    };
+    // KthNeighborDistances' cases, in its order.
+    BoundingBox box;
+    for (const Vec3f& p : points) {
+        if (!p.allFinite()) return first_column();
+        box.Extend(p);
+    }
+    const float diag = box.Diagonal();
+    if (!(diag > 0.0f)) return std::vector<float>(n, 0.0f);
+    const auto grid = NeighborGrid(points, 1);
+    if (!grid) return first_column();
+    const float reach = 2.0f * diag;
+    const UniformGrid& g = *grid;
+    std::vector<float> r(n);
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 2048), [&](const tbb::blocked_range<std::size_t>& range) {
+        for (std::size_t i = range.begin(); i != range.end(); ++i) {
+            // KthNeighborDist2InBlock answers row i exactly when its nearest lies within the
+            // block's reach (the block's nearest is then the nearest of all: the table's).
+            const float d2 = knn.Dist2(i)[0];
+            int at[3];
+            g.DenseCellOf(points[i], at);
+            const float block = g.BlockReach(points[i], at);
+            r[i] = std::sqrt(block > 0.0f && d2 <= block * block
+                                 ? d2
+                                 : KthDist2(g, points, static_cast<std::uint32_t>(i), 1, 2.0f * g.cell(), reach));
+        }
+    });
+    return r;
+}
+
 }  // namespace surfel

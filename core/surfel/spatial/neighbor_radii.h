@@ -40,4 +40,16 @@ std::unique_ptr<UniformGrid> NeighborGrid(std::span<const Vec3f> points, int k);
 /// kd-tree's build and KnnAll; on the 362k merged scans about 105 against 215 ms.
 std::vector<float> KthNeighborDistances(std::span<const Vec3f> points, int k, const KdTree* tree = nullptr);
 
+struct KnnTable;
+
+/// KthNeighborDistances(points, 1) from a k-nearest table the caller already has (`knn` =
+/// KdTree(points).KnnAll(K), any K >= 1): the same values, bit for bit, without its own search
+/// of every point. The two differ in one place: KthNeighborDistances' rows that leave the grid's
+/// 3 x 3 x 3 block take their squared distances from UniformGrid::ForEachWithin (Eigen's
+/// squaredNorm, x^2 + (y^2 + z^2)), the table and the block from (x^2 + y^2) + z^2 (FLANN's
+/// order), which can differ in the last bit. So the block's rows (the nearest within
+/// BlockReach of the same grid) are the table's first column, and the others (under 1 % on the
+/// scans) are searched outwards as KthNeighborDistances searches them.
+std::vector<float> NearestDistances(std::span<const Vec3f> points, const KnnTable& knn);
+
 }  // namespace surfel

@@ -821,6 +821,18 @@ std::size_t OrientNormals(const KdTree& tree, std::vector<Vec3f>& normals, const
     return OrientOverGraph(tree.points(), normals, knn, kk, options.orient_crossing_weight, flipped, progress);
 }
 
+std::size_t OrientNormals(std::span<const Vec3f> points, const KnnTable& knn, std::vector<Vec3f>& normals,
+                          const NormalOptions& options, std::size_t* flipped, const ProgressFn& progress) {
+    options.Validate();
+    const std::size_t n = points.size();
+    SURFEL_CHECK(normals.size() == n, normals.size() << " normals for " << n << " points");
+    const int kk = std::max(1, std::min<int>(options.orient_k, static_cast<int>(n) - 1));
+    if (n <= 1) return OrientOverGraph(points, normals, KnnTable{}, kk, options.orient_crossing_weight, flipped, progress);
+    SURFEL_CHECK(knn.size() == n && knn.k >= kk,
+                 knn.size() << " rows of " << knn.k << " neighbours for " << n << " points, orient_k " << kk);
+    return OrientOverGraph(points, normals, knn, kk, options.orient_crossing_weight, flipped, progress);
+}
+
 std::size_t detail::OrientNormals(const KdTree& tree, std::vector<Vec3f>& normals, const NormalOptions& options,
                                   SpanningTrees method, std::size_t* flipped, bool* by_kruskal) {
     options.Validate();

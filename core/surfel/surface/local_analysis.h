@@ -163,6 +163,15 @@ Vec3f EstimateNormalAt(const KdTree& tree, std::size_t i, const NormalOptions& o
 /// input. Calls options.Validate() first (only orient_k and orient_crossing_weight are used).
 std::size_t OrientNormals(const KdTree& tree, std::vector<Vec3f>& normals, const NormalOptions& options = {},
                           std::size_t* flipped = nullptr, const ProgressFn& progress = {});
+/// The same over neighbours the caller already has: `knn` = KdTree(points).KnnAll(K) (rows nearest
+/// first, ties by index) with K >= min(options.orient_k, size() - 1); the graph is its first
+/// min(options.orient_k, size() - 1) columns, the rows KnnAll(orient_k) gives, so the same
+/// normals, flips and components as OrientNormals(tree, normals, options). For callers that also
+/// need the neighbours for something else (one search instead of two). `knn` may be empty for
+/// fewer than 2 points.
+std::size_t OrientNormals(std::span<const Vec3f> points, const KnnTable& knn, std::vector<Vec3f>& normals,
+                          const NormalOptions& options = {}, std::size_t* flipped = nullptr,
+                          const ProgressFn& progress = {});
 
 namespace detail {
 /// How OrientNormals builds its minimum spanning trees. kAuto: Kruskal's over the edges sorted in

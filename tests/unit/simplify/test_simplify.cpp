@@ -5,13 +5,17 @@
 #include <cmath>
 #include <cstring>
 #include <random>
+#include <string>
 
 #include "surfel/base/error.h"
+#include "surfel/base/progress.h"
 #include "surfel/base/shapes.h"
-#include "surfel/simplify/simplify.h"
 #include "surfel/simplify/cluster_sums.h"
+#include "surfel/simplify/simplify.h"
+#include "surfel/simplify/simplify_internal.h"
 #include "surfel/simplify/split_pass.h"
 #include "surfel/spatial/kd_tree.h"
+#include "surfel/spatial/neighbor_radii.h"
 #include "surfel/surface/local_analysis.h"
 #include "surfel/surface/poly_fit.h"
 #include "iterative_reference.h"
@@ -798,6 +802,79 @@ TEST(Simplify, CanBeCancelled) {
 TEST(Simplify, MethodNamesRoundTrip) {
     for (SimplifyMethod m : kAllMethods) EXPECT_EQ(ParseSimplifyMethod(SimplifyMethodName(m)), m);
     EXPECT_FALSE(ParseSimplifyMethod("qslim"));
+}
+
+// BuildFromClusters with the clusters' own normals (hierarchical) asks one k-nearest table of the
+// representatives for its three searches: the same normals and radii, bit for bit, as the
+// separate searches it replaced (the covariance normal of KdTree::Knn(16) of a representative,
+// itself included, where a cluster gives none; OrientNormals' own k = 10 search;
+// KthNeighborDistances(1) for the radii).
+TEST(BuildFromClusters, OneNeighbourTableGivesTheSeparateSearchesBits) {
+    struct Case {
+        std::string name;
+        PointCloud input;
+        Clustering clusters;
+    };
+    std::vector<Case> cases;
+    ShapeOptions o;
+    o.points = 20000;
+    o.noise = 0.003;
+    const PointCloud sphere = SampleShape(Shape::kSphere, o);
+    for (const std::size_t target : {300u, 2000u}) {
+        SimplifyOptions so;
+        so.target = target;
+        ProgressTracker tracker({}, 1.0, "test");
+        cases.push_back({"hierarchical " + std::to_string(target), sphere,
+                         detail::HierarchicalClustering(sphere.positions, so, tracker)});
+    }
+    // One point a cluster (the representatives are the points), many of them repeated up to 20
+    // times (ties at distance 0, more than the 16 neighbours), every third without a normal.
+    for (const std::size_t m : {5u, 17u, 3000u}) {
+        Case c{"singletons " + std::to_string(m), {}, {}};
+        for (std::size_t i = 0; c.input.size() < m; ++i)
+            for (std::size_t r = 0; r <= (i * 7) % 21 && c.input.size() < m; ++r)
+                c.input.positions.push_back(sphere.positions[i]);
+        c.clusters.count = m;
+        for (std::size_t i = 0; i < m; ++i) {
+            c.clusters.label.push_back(static_cast<std::uint32_t>(i));
+            c.clusters.normals.push_back(i % 3 == 0 ? Vec3f::Zero() : c.input.positions[i].normalized());
+        }
+        cases.push_back(std::move(c));
+    }
+    for (const Case& c : cases) {
+        SCOPED_TRACE(c.name);
+        const PointCloud out = BuildFromClusters(c.input, {}, c.clusters, {}, false, nullptr);
+        const std::size_t m = out.size();
+        ASSERT_EQ(m, c.clusters.count);
+        // The separate searches, as BuildFromClusters made them before.
+        const KdTree tree(out.positions);
+        std::vector<Vec3f> normals = c.clusters.normals;
+        std::size_t fallbacks = 0;
+        std::vector<Neighbor> near;
+        for (std::size_t i = 0; i < m; ++i) {
+            if (normals[i] != Vec3f::Zero()) continue;
+            ++fallbacks;
+            tree.Knn(out.positions[i], std::min<int>(16, static_cast<int>(m)), &near);
+            std::vector<std::uint32_t> idx;
+            for (const Neighbor& nb : near) idx.push_back(nb.index);
+            normals[i] = AnalyzeNeighborhood(out.positions, idx).normal.cast<float>();
+        }
+        if (c.name.starts_with("singletons")) EXPECT_GT(fallbacks, 0u);  // every third
+        NormalOptions no;
+        no.orient_k = std::min<int>(10, static_cast<int>(m) - 1);
+        OrientNormals(tree, normals, no);
+        const std::vector<float> nn = KthNeighborDistances(out.positions, 1, &tree);
+        std::vector<float> radii(m, 0.0f);
+        for (std::size_t i = 0; i < c.input.size(); ++i) {
+            const std::uint32_t l = c.clusters.label[i];
+            radii[l] = std::max(radii[l], (c.input.positions[i] - out.positions[l]).norm());
+        }
+        for (std::size_t i = 0; i < m; ++i) radii[i] = std::max(radii[i], nn[i]);
+        ASSERT_EQ(out.normals.size(), m);
+        ASSERT_EQ(out.radii.size(), m);
+        EXPECT_EQ(std::memcmp(out.normals.data(), normals.data(), m * sizeof(Vec3f)), 0);
+        EXPECT_EQ(std::memcmp(out.radii.data(), radii.data(), m * sizeof(float)), 0);
+    }
 }
 
 }  // namespace

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <limits>
 #include <random>
 
@@ -107,6 +108,53 @@ TEST(UniformGrid, KthNeighborInBlockIsExactOrDeclines) {
     std::vector<Vec3f> far = torus.positions;
     far.emplace_back(1e4f, 0.0f, 0.0f);
     EXPECT_TRUE(UniformGrid(far, 0.08f).KthNeighborDist2InBlock(6).empty());  // sparse layout
+}
+
+// NearestDistances from any KnnAll(K) table: KthNeighborDistances(points, 1) bit for bit, also on
+// the rows KthNeighborDistances searches outside the grid's block, whose squared distances it sums
+// in another order than the table (x^2 + (y^2 + z^2) against (x^2 + y^2) + z^2).
+TEST(NearestDistances, FromATableEqualKthNeighborDistancesBitForBit) {
+    ShapeOptions o;
+    o.points = 4000;
+    o.noise = 0.01;
+    std::vector<std::pair<const char*, std::vector<Vec3f>>> clouds;
+    clouds.emplace_back("torus", SampleShape(Shape::kTorus, o).positions);
+    std::mt19937 rng(9);
+    std::uniform_real_distribution<float> u(0.0f, 1.0f);
+    std::vector<Vec3f> cube, uneven;
+    for (int i = 0; i < 3000; ++i) cube.emplace_back(u(rng), u(rng), u(rng));
+    for (int i = 0; i < 3000; ++i) uneven.emplace_back(0.01f * u(rng), 0.01f * u(rng), 0.01f * u(rng));
+    for (int i = 0; i < 2000; ++i) uneven.emplace_back(u(rng), u(rng), 0.3f * u(rng));
+    clouds.emplace_back("cube", cube);
+    clouds.emplace_back("uneven", uneven);
+    std::vector<Vec3f> lattice;
+    for (int x = 0; x < 12; ++x)
+        for (int y = 0; y < 12; ++y)
+            for (int z = 0; z < 3; ++z) lattice.emplace_back(0.1f * x, 0.1f * y, 0.1f * z);
+    for (int i = 0; i < 40; ++i) lattice.push_back(lattice[7 * i]);  // duplicates: distance 0
+    clouds.emplace_back("lattice", lattice);
+    clouds.emplace_back("three", std::vector<Vec3f>{{0, 0, 0}, {1, 0, 0}, {0, 2, 0}});
+    clouds.emplace_back("coincident", std::vector<Vec3f>(5, Vec3f(1, 1, 1)));
+    std::vector<Vec3f> far = SampleShape(Shape::kSphere, o).positions;
+    far.emplace_back(1e4f, 1e4f, 1e4f);  // no dense grid: KnnAll(1)'s column
+    clouds.emplace_back("far", far);
+    std::size_t outward_differs = 0;  // rows where the table's own first column is off by a bit
+    for (const auto& [name, pts] : clouds) {
+        SCOPED_TRACE(name);
+        const KdTree tree(pts);
+        const std::vector<float> want = KthNeighborDistances(pts, 1);
+        for (const int k : {1, 10, 16}) {
+            const KnnTable knn = tree.KnnAll(std::min<int>(k, static_cast<int>(pts.size()) - 1));
+            const std::vector<float> got = NearestDistances(pts, knn);
+            ASSERT_EQ(got.size(), want.size());
+            for (std::size_t i = 0; i < pts.size(); ++i) {
+                ASSERT_EQ(std::memcmp(&got[i], &want[i], sizeof(float)), 0) << "k " << k << ", point " << i << ": " << got[i] << " " << want[i];
+                if (k == 16 && std::sqrt(knn.Dist2(i)[0]) != want[i]) ++outward_differs;
+            }
+        }
+    }
+    EXPECT_GT(outward_differs, 0u);  // the case the grid's reach decides is exercised
+    EXPECT_EQ(NearestDistances(std::vector<Vec3f>{{1, 2, 3}}, KnnTable{}), std::vector<float>{0.0f});
 }
 
 }  // namespace

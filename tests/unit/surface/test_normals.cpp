@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <filesystem>
 #include <limits>
 #include <string>
@@ -308,6 +309,49 @@ TEST(Orientation, KruskalGivesPrimsTrees) {
         EXPECT_FALSE(kruskal);
         EXPECT_EQ(by_auto, by_prim);
     }
+}
+
+// OrientNormals over a table the caller already has (KnnAll(K), K >= orient_k): the normals,
+// flips and components of OrientNormals' own search, bit for bit, whatever K.
+TEST(Orientation, GivenTableEqualsOwnSearch) {
+    ShapeOptions o;
+    o.points = 6000;
+    o.noise = 0.004;
+    const PointCloud torus = SampleShape(Shape::kTorus, o);
+    PointCloud two = torus;  // two components
+    for (const Vec3f& p : SampleShape(Shape::kSphere, o).positions) two.positions.push_back(p + Vec3f(6, 0, 0));
+    PointCloud grid;  // ties: a lattice, every distance repeated
+    for (int y = 0; y < 30; ++y)
+        for (int x = 0; x < 30; ++x) grid.positions.emplace_back(0.1f * x, 0.1f * y, 0.0f);
+    for (const PointCloud* cloud : std::vector<const PointCloud*>{&torus, &two, &grid}) {
+        const KdTree tree(cloud->positions);
+        std::vector<Vec3f> normals = EstimateNormals(tree, {.orient = false}).normals;
+        std::uint64_t state = 3;
+        for (Vec3f& n : normals) {
+            state = state * 6364136223846793005ull + 1442695040888963407ull;
+            if (state >> 63) n = -n;
+        }
+        for (const int orient_k : {4, 10}) {
+            const NormalOptions opt{.orient_k = orient_k};
+            std::vector<Vec3f> want = normals;
+            std::size_t want_flipped = 0;
+            const std::size_t want_comps = OrientNormals(tree, want, opt, &want_flipped);
+            for (const int k : {orient_k, 16, 24}) {
+                SCOPED_TRACE(std::to_string(cloud->size()) + " points, orient_k " + std::to_string(orient_k) + ", k " + std::to_string(k));
+                const KnnTable knn = tree.KnnAll(k);
+                std::vector<Vec3f> got = normals;
+                std::size_t flipped = 0;
+                EXPECT_EQ(OrientNormals(cloud->positions, knn, got, opt, &flipped), want_comps);
+                EXPECT_EQ(flipped, want_flipped);
+                EXPECT_EQ(std::memcmp(got.data(), want.data(), got.size() * sizeof(Vec3f)), 0);
+            }
+        }
+    }
+    // One point needs no table.
+    const std::vector<Vec3f> point = {{0, 0, 0}};
+    std::vector<Vec3f> one = {-Vec3f::UnitZ()}, one_tree = one;
+    EXPECT_EQ(OrientNormals(point, KnnTable{}, one), OrientNormals(KdTree(point), one_tree));
+    EXPECT_EQ(one, one_tree);
 }
 
 // A slab thinner than the orientation graph's neighbourhoods: the box squashed to 4 % of its
