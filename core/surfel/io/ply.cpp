@@ -5,6 +5,8 @@
 #include <charconv>
 #include <cmath>
 #include <cstring>
+#include <limits>
+#include <numeric>
 #include <optional>
 #include <sstream>
 #include <system_error>
@@ -349,6 +351,74 @@ struct PositionStream {
     }
 };
 
+// PositionStream::Take of `m` whole records from `p` whose x, y and z are float32 in the machine's
+// byte order at byte offsets `at` (multiples of 4, `rec` too), without the scratch block: lane-wise
+// minima and maxima of the records' floats, 16 bytes at a time (a record of r floats repeats its
+// pattern every lcm(r, 4) floats), then each lane folded into its axis. Extend's bits whenever
+// the block's extremes are not zeros (equal floats other than +0 and -0 have equal bits, so the
+// order of the comparisons cannot show) and every coordinate is finite; otherwise it returns
+// false and changes nothing: the caller takes the records the ordinary way.
+bool TakeFloatRecords(const char* p, std::size_t m, std::size_t rec, const std::size_t at[3], BoundingBox* bounds) {
+    typedef float V4f __attribute__((vector_size(16)));
+    typedef std::int32_t V4i __attribute__((vector_size(16)));
+    constexpr int kMaxVectors = 16;
+    const std::size_t r = rec / 4;
+    const std::size_t floats = std::lcm<std::size_t>(r, 4);  // one period of the pattern
+    const std::size_t vectors = floats / 4, per_period = floats / r;
+    if (vectors > kMaxVectors) return false;
+    int axis_of[4 * kMaxVectors];  // the axis of each float of a period, -1 for the others
+    for (std::size_t l = 0; l < floats; ++l) {
+        const std::size_t f = l % r;
+        axis_of[l] = f == at[0] / 4 ? 0 : f == at[1] / 4 ? 1 : f == at[2] / 4 ? 2 : -1;
+    }
+    const float inf = std::numeric_limits<float>::infinity();
+    V4f lo[kMaxVectors], hi[kMaxVectors];
+    V4i bad[kMaxVectors];
+    for (std::size_t v = 0; v < vectors; ++v) {
+        lo[v] = V4f{inf, inf, inf, inf};
+        hi[v] = -lo[v];
+        bad[v] = V4i{0, 0, 0, 0};
+    }
+    const std::size_t periods = m / per_period;
+    const V4i exponent = {0x7f800000, 0x7f800000, 0x7f800000, 0x7f800000};
+    for (std::size_t g = 0; g < periods; ++g) {
+        const char* q = p + g * floats * 4;
+        for (std::size_t v = 0; v < vectors; ++v) {
+            V4f x;
+            V4i bits;
+            std::memcpy(&x, q + 16 * v, 16);
+            std::memcpy(&bits, q + 16 * v, 16);
+            lo[v] = x < lo[v] ? x : lo[v];
+            hi[v] = x > hi[v] ? x : hi[v];
+            bad[v] |= (bits & exponent) == exponent;  // inf or nan
+        }
+    }
+    Vec3f box_lo = Vec3f::Constant(inf), box_hi = Vec3f::Constant(-inf);
+    for (std::size_t l = 0; l < floats; ++l) {
+        const int a = axis_of[l];
+        if (a < 0) continue;
+        if (bad[l / 4][l % 4]) return false;
+        box_lo[a] = std::min(box_lo[a], lo[l / 4][l % 4]);
+        box_hi[a] = std::max(box_hi[a], hi[l / 4][l % 4]);
+    }
+    for (std::size_t i = periods * per_period; i < m; ++i) {  // the records after the last period
+        for (int a = 0; a < 3; ++a) {
+            float x;
+            std::memcpy(&x, p + i * rec + at[a], 4);
+            if (!std::isfinite(x)) return false;
+            box_lo[a] = std::min(box_lo[a], x);
+            box_hi[a] = std::max(box_hi[a], x);
+        }
+    }
+    for (int a = 0; a < 3; ++a)
+        if (m > 0 && (box_lo[a] == 0.0f || box_hi[a] == 0.0f)) return false;
+    if (m > 0) {
+        bounds->min = bounds->min.cwiseMin(box_lo);
+        bounds->max = bounds->max.cwiseMax(box_hi);
+    }
+    return true;
+}
+
 // A streamed element of at least this many blocks (4 MiB) is read in two halves, the second on a
 // thread of its own (the upload check runs after the last byte, while the client waits): a fixed
 // split, so the answer never depends on the number of cores.
@@ -644,6 +714,7 @@ struct PlyPositionScan::State {
     std::size_t line_start = 0;  // of the first line of `head` not yet looked at
     PositionLayout layout;
     bool swap = false;
+    bool plain_floats = false;  // TakeFloatRecords can take the records
     std::string carry;         // the start of a record cut off by the end of an Append
     std::uint64_t folded = 0;  // vertex records in `stream`
     PositionStream stream;     // its scratch holds one block
@@ -688,6 +759,9 @@ struct PlyPositionScan::State {
                 if (e.Find("x") < 0 || e.Find("y") < 0 || e.Find("z") < 0) return Off();
                 layout = PositionLayout::Of(h, e, offset);
                 swap = (h.format == PlyFormat::kBinaryBigEndian) == (std::endian::native == std::endian::little);
+                plain_floats = !swap && layout.record % 4 == 0;
+                for (int a = 0; a < 3; ++a)
+                    plain_floats = plain_floats && layout.type[a] == ScalarType::kFloat32 && layout.at[a] % 4 == 0;
                 stream.scratch.resize(static_cast<std::size_t>(std::max<std::uint64_t>(1, std::min(BlockRecords(e), e.count))));
                 phase = Phase::kBody;
                 return Body(all.substr(h.body_offset), h.body_offset);
@@ -725,6 +799,11 @@ struct PlyPositionScan::State {
         float* base = stream.scratch.front().data();
         for (std::size_t b = 0; b < m; b += block) {
             const std::size_t k = std::min(block, m - b);
+            if (plain_floats && stream.first_bad == UINT64_MAX &&
+                TakeFloatRecords(p + b * layout.record, k, layout.record, layout.at, &stream.bounds)) {
+                folded += k;
+                continue;
+            }
             if (stream.first_bad == UINT64_MAX)  // refused anyway, and Take would keep nothing
                 for (int a = 0; a < 3; ++a)
                     ExtractColumn(layout.type[a], p + b * layout.record, layout.record, k, layout.at[a], swap,

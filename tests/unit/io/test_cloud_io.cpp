@@ -409,6 +409,41 @@ TEST(PlyPositionScan, RefusesWhatTheWholeFileCheckRefusesWithTheSameMessage) {
     ExpectScanMatchesAtEveryCut("1 2 3\n4 5 6\n", "points.xyz", false);
 }
 
+// Float positions in the machine's byte order are folded 16 bytes at a time (lane-wise minima and
+// maxima): Extend's bits for records of 3 to 9 floats, a zero of either sign at a bound (the
+// first one met is kept, so such a block goes the scalar way), and a non-finite coordinate named
+// as the whole-file check names it, in whole periods of the pattern and in the records after.
+TEST(PlyPositionScan, FoldsPlainFloatsToTheBitsOfExtend) {
+    ShapeOptions o;
+    o.points = 3 * 2730 + 5;
+    PointCloud base = SampleShape(Shape::kTorus, o);
+    for (Vec3f& p : base.positions) p = p.cwiseAbs() + Vec3f::Constant(1.0f);
+    for (int extras = 0; extras <= 6; ++extras) {
+        PointCloud cloud = base;
+        for (int k = 0; k < extras; ++k)
+            cloud.extras.push_back({std::string(1, static_cast<char>('a' + k)), ScalarType::kFloat32,
+                                    std::vector<double>(cloud.size(), k == 0 ? std::nan("") : 0.5)});
+        const std::string name = "plain" + std::to_string(extras) + ".ply";
+        std::vector<std::size_t> cuts;
+        for (std::size_t c = 333; c < cloud.size() * 40; c += 7777) cuts.push_back(c);
+        EXPECT_TRUE(ExpectScanMatchesWholeFile(FormatPly(cloud), name, cuts));  // no zeros: the vector path
+        PointCloud zeros = cloud;
+        zeros.positions[10].x() = 0.0f;  // +0 first, then -0: the lower x bound is +0
+        zeros.positions[20].x() = -0.0f;
+        zeros.positions[3000].y() = -0.0f;  // -0 then +0 in a later block: the lower y bound is -0
+        zeros.positions[4000].y() = 0.0f;
+        zeros.positions[8194].z() = -0.0f;  // in the records after the last whole period
+        EXPECT_TRUE(ExpectScanMatchesWholeFile(FormatPly(zeros), name, cuts));
+        const BoundingBox b = zeros.Bounds();
+        ASSERT_TRUE(std::signbit(b.min.y()) && !std::signbit(b.min.x()));
+        for (const std::size_t bad : {std::size_t{7}, std::size_t{2731}, cloud.size() - 1}) {
+            PointCloud c = cloud;
+            c.positions[bad].z() = -std::numeric_limits<float>::infinity();
+            EXPECT_TRUE(ExpectScanMatchesWholeFile(FormatPly(c), name, cuts));
+        }
+    }
+}
+
 // The scan's positions are what the check takes (it does not read them again): bytes of the same
 // size and layout but other positions get the scanned bounds. Appending exactly the file's bytes
 // is the caller's part (UploadSession appends each chunk it writes).
