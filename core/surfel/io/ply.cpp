@@ -540,8 +540,19 @@ private:
         // Block by block (about 64 KiB of records each), every column of a block while it is in
         // the cache: one pass over the bytes instead of one per property.
         const std::uint64_t block = BlockRecords(e);  // `stream`'s scratch holds one
+        // A streamed element with float x, y, z in the machine's byte order: TakeFloatRecords.
+        std::size_t at[3] = {0, 0, 0};
+        bool plain = stream && !swap_ && rec % 4 == 0;
+        for (std::size_t k = 0, off = 0; plain && k < e.props.size(); off += ScalarSize(e.props[k].type), ++k)
+            for (int a = 0; a < 3; ++a)
+                if (static_cast<int>(k) == e.Find(std::string_view("xyz").substr(a, 1))) {
+                    at[a] = off;
+                    plain = plain && e.props[k].type == ScalarType::kFloat32 && off % 4 == 0;
+                }
         for (std::uint64_t b = first; rec > 0 && b < n; b += block) {
             const std::size_t m = static_cast<std::size_t>(std::min(block, n - b));
+            if (plain && stream->first_bad == UINT64_MAX && TakeFloatRecords(base + b * rec, m, rec, at, &stream->bounds))
+                continue;
             std::size_t off = 0;
             for (std::size_t k = 0; k < e.props.size(); ++k) {
                 if (sinks.size() > k && sinks[k].active()) {
