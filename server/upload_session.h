@@ -10,12 +10,16 @@
 /// renames it into place), writeback to disk is started every few MiB while the upload goes on
 /// (sync_file_range), so that the fsync before the acknowledgement finds little left to do, and
 /// Finish parses the file from a read-only mapping (no copy) while another thread fsyncs it.
+/// The positions of a binary PLY are checked while the chunks are appended (PlyPositionScan, on
+/// the bytes just hashed): Finish then reads only the header and what follows the vertex records.
 
 #include <cstdint>
+#include <memory>
 #include <string>
 #include <string_view>
 
 #include "operations.h"
+#include "surfel/io/ply.h"
 #include "surfel/worker/sha256.h"
 
 namespace surfel::server {
@@ -78,8 +82,12 @@ class UploadSession {
     std::uint64_t inflight_ = 0;        // bytes this session counts in Operations' in-flight total
     int fd_ = -1;                       // the part file, open for appending
     worker::Sha256 hash_;
+    // The upload check's positions folded in as the chunks are appended (a fresh upload only:
+    // a resumed one's earlier bytes were not seen; Finish then reads them all, as before).
+    std::unique_ptr<PlyPositionScan> scan_;
 
     void CloseFile();
+    PlyReadOptions ReadLimits() const;  // the upload check's
 };
 
 }  // namespace surfel::server

@@ -17,6 +17,8 @@
 #include "service_client.h"
 #include "surfel/base/shapes.h"
 #include "surfel/io/image.h"
+#include "surfel/base/error.h"
+#include "surfel/io/cloud_io.h"
 #include "surfel/io/ply.h"
 #include "surfel/io/file_bytes.h"
 #include "surfel/worker/sha256.h"
@@ -263,6 +265,75 @@ TEST_F(ServiceTest, UploadResumesAtTheCommittedSize) {
     EXPECT_EQ(cloud.points(), 5000u);
     ServiceClient c(server.target());
     EXPECT_EQ(c.UploadFile(Path("sphere.ply")).id(), cloud.id());  // the whole file's hash
+}
+
+// The upload check runs while the chunks arrive (PlyPositionScan, fed by UploadSession::Append):
+// chunks cut inside the header and inside records, good and bad binary files, answered as the
+// check of the whole file answers (the same Cloud, or the same code and message); a resumed
+// upload (its first bytes were not seen by this call) is checked after the last byte, the same.
+TEST_F(ServiceTest, UploadsCheckedWhileReceivedAnswerAsTheWholeFileCheck) {
+    testing::ServerProcess server(data_);
+    auto channel = grpc::CreateChannel(server.target(), grpc::InsecureChannelCredentials());
+    auto stub = v1::Surfel::NewStub(channel);
+    const std::string ok = ReadFileBytes(Path("sphere.ply"));
+    PointCloud nan_cloud = ReadPly(Path("sphere.ply"));
+    nan_cloud.positions[4000].y() = std::numeric_limits<float>::quiet_NaN();
+    const std::string nan = FormatPly(nan_cloud);
+    const std::vector<std::pair<std::string, std::string>> files = {
+        {"ok.ply", ok}, {"nan.ply", nan}, {"nan-tail.ply", nan + "junk"}, {"cut.ply", ok.substr(0, ok.size() - 5)}};
+    int n = 0;
+    for (const auto& [name, bytes] : files) {
+        for (const bool resumed : {false, true}) {
+            SCOPED_TRACE(name + (resumed ? " resumed" : ""));
+            const std::string id = "scan-" + std::to_string(n++);
+            std::size_t offset = 0;
+            if (resumed) {  // the first 3,000 bytes (the header and some records), then the call breaks off
+                grpc::ClientContext ctx;
+                v1::Cloud cloud;
+                auto w = stub->Upload(&ctx, &cloud);
+                v1::UploadRequest r;
+                r.set_upload_id(id);
+                r.set_filename(name);
+                r.set_data(bytes.substr(0, 3000));
+                ASSERT_TRUE(w->Write(r));
+                w->WritesDone();
+                EXPECT_EQ(w->Finish().error_code(), grpc::StatusCode::FAILED_PRECONDITION);
+                offset = 3000;
+            }
+            grpc::ClientContext ctx;
+            v1::Cloud cloud;
+            auto w = stub->Upload(&ctx, &cloud);
+            for (std::size_t piece = 100; offset < bytes.size(); piece = 7777) {  // 100: inside the header
+                v1::UploadRequest r;
+                r.set_upload_id(id);
+                r.set_filename(name);
+                r.set_write_offset(static_cast<std::int64_t>(offset));
+                r.set_data(bytes.substr(offset, piece));
+                offset = std::min(bytes.size(), offset + piece);
+                r.set_finish_write(offset == bytes.size());
+                ASSERT_TRUE(w->Write(r));
+            }
+            w->WritesDone();
+            const grpc::Status s = w->Finish();
+            try {
+                const CloudFileSummary want = InspectCloudFile(bytes, name);
+                ASSERT_TRUE(s.ok()) << s.error_message();
+                EXPECT_EQ(cloud.points(), want.points);
+                EXPECT_EQ(cloud.bounds_min().x(), static_cast<double>(want.bounds.min.x()));
+                EXPECT_EQ(cloud.bounds_min().y(), static_cast<double>(want.bounds.min.y()));
+                EXPECT_EQ(cloud.bounds_min().z(), static_cast<double>(want.bounds.min.z()));
+                EXPECT_EQ(cloud.bounds_max().x(), static_cast<double>(want.bounds.max.x()));
+                EXPECT_EQ(cloud.bounds_max().y(), static_cast<double>(want.bounds.max.y()));
+                EXPECT_EQ(cloud.bounds_max().z(), static_cast<double>(want.bounds.max.z()));
+                EXPECT_EQ(cloud.format(), want.format);
+            } catch (const Error& e) {
+                ASSERT_EQ(e.code(), ErrorCode::kInvalidArgument) << e.what();
+                EXPECT_EQ(s.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+                EXPECT_EQ(s.error_message(), e.what());
+            }
+        }
+    }
+    EXPECT_TRUE(fs::is_empty(data_ + "/uploads"));
 }
 
 // The server reads ahead of its writer (upload_reactor.cpp): messages received after one that

@@ -126,10 +126,11 @@ PointCloud ParsePointCloud(std::string_view data, std::string_view name, const P
     return EntryForContent(data).parse(data, name, options, nullptr);
 }
 
-CloudFileSummary InspectCloudFile(std::string_view data, std::string_view name, const PlyReadOptions& options) {
+CloudFileSummary InspectCloudFile(std::string_view data, std::string_view name, const PlyReadOptions& options,
+                                  const PlyPositionScan* scan) {
     const CloudFormatEntry& entry = EntryForContent(data);
     if (entry.format == CloudFileFormat::kPly) {  // the positions streamed, never all in memory
-        PlySummary ply = InspectPly(data, name, options);
+        PlySummary ply = InspectPly(data, name, options, scan);
         if (ply.points == 0) throw Error(ErrorCode::kInvalidArgument, std::string(name) + ": the cloud has no points");
         CloudFileSummary s;
         s.points = ply.points;

@@ -49,7 +49,10 @@ struct CloudFileSummary {
 /// as ParsePointCloud (the parsers' messages, `options`' limits), and refused with
 /// Error(kInvalidArgument) "<name>: the cloud has no points" when it holds none (a PLY with
 /// `element vertex 0`, an XYZ of comments). The libFuzzer target cloud_fuzzer runs it.
-CloudFileSummary InspectCloudFile(std::string_view data, std::string_view name, const PlyReadOptions& options = {});
+/// `scan`, when given, is a PlyPositionScan the bytes were appended to as they arrived: a PLY
+/// file's positions are then taken from it where it covered them (InspectPly), the same result.
+CloudFileSummary InspectCloudFile(std::string_view data, std::string_view name, const PlyReadOptions& options = {},
+                                  const PlyPositionScan* scan = nullptr);
 
 /// Reads a cloud file in the format its content shows, as ParsePointCloud. `info`, when given,
 /// receives the header of a PLY file (left untouched for other formats).

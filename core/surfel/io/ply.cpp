@@ -5,6 +5,8 @@
 #include <charconv>
 #include <cmath>
 #include <cstring>
+#include <limits>
+#include <numeric>
 #include <optional>
 #include <sstream>
 #include <system_error>
@@ -349,6 +351,74 @@ struct PositionStream {
     }
 };
 
+// PositionStream::Take of `m` whole records from `p` whose x, y and z are float32 in the machine's
+// byte order at byte offsets `at` (multiples of 4, `rec` too), without the scratch block: lane-wise
+// minima and maxima of the records' floats, 16 bytes at a time (a record of r floats repeats its
+// pattern every lcm(r, 4) floats), then each lane folded into its axis. Extend's bits whenever
+// the block's extremes are not zeros (equal floats other than +0 and -0 have equal bits, so the
+// order of the comparisons cannot show) and every coordinate is finite; otherwise it returns
+// false and changes nothing: the caller takes the records the ordinary way.
+bool TakeFloatRecords(const char* p, std::size_t m, std::size_t rec, const std::size_t at[3], BoundingBox* bounds) {
+    typedef float V4f __attribute__((vector_size(16)));
+    typedef std::int32_t V4i __attribute__((vector_size(16)));
+    constexpr int kMaxVectors = 16;
+    const std::size_t r = rec / 4;
+    const std::size_t floats = std::lcm<std::size_t>(r, 4);  // one period of the pattern
+    const std::size_t vectors = floats / 4, per_period = floats / r;
+    if (vectors > kMaxVectors) return false;
+    int axis_of[4 * kMaxVectors];  // the axis of each float of a period, -1 for the others
+    for (std::size_t l = 0; l < floats; ++l) {
+        const std::size_t f = l % r;
+        axis_of[l] = f == at[0] / 4 ? 0 : f == at[1] / 4 ? 1 : f == at[2] / 4 ? 2 : -1;
+    }
+    const float inf = std::numeric_limits<float>::infinity();
+    V4f lo[kMaxVectors], hi[kMaxVectors];
+    V4i bad[kMaxVectors];
+    for (std::size_t v = 0; v < vectors; ++v) {
+        lo[v] = V4f{inf, inf, inf, inf};
+        hi[v] = -lo[v];
+        bad[v] = V4i{0, 0, 0, 0};
+    }
+    const std::size_t periods = m / per_period;
+    const V4i exponent = {0x7f800000, 0x7f800000, 0x7f800000, 0x7f800000};
+    for (std::size_t g = 0; g < periods; ++g) {
+        const char* q = p + g * floats * 4;
+        for (std::size_t v = 0; v < vectors; ++v) {
+            V4f x;
+            V4i bits;
+            std::memcpy(&x, q + 16 * v, 16);
+            std::memcpy(&bits, q + 16 * v, 16);
+            lo[v] = x < lo[v] ? x : lo[v];
+            hi[v] = x > hi[v] ? x : hi[v];
+            bad[v] |= (bits & exponent) == exponent;  // inf or nan
+        }
+    }
+    Vec3f box_lo = Vec3f::Constant(inf), box_hi = Vec3f::Constant(-inf);
+    for (std::size_t l = 0; l < floats; ++l) {
+        const int a = axis_of[l];
+        if (a < 0) continue;
+        if (bad[l / 4][l % 4]) return false;
+        box_lo[a] = std::min(box_lo[a], lo[l / 4][l % 4]);
+        box_hi[a] = std::max(box_hi[a], hi[l / 4][l % 4]);
+    }
+    for (std::size_t i = periods * per_period; i < m; ++i) {  // the records after the last period
+        for (int a = 0; a < 3; ++a) {
+            float x;
+            std::memcpy(&x, p + i * rec + at[a], 4);
+            if (!std::isfinite(x)) return false;
+            box_lo[a] = std::min(box_lo[a], x);
+            box_hi[a] = std::max(box_hi[a], x);
+        }
+    }
+    for (int a = 0; a < 3; ++a)
+        if (m > 0 && (box_lo[a] == 0.0f || box_hi[a] == 0.0f)) return false;
+    if (m > 0) {
+        bounds->min = bounds->min.cwiseMin(box_lo);
+        bounds->max = bounds->max.cwiseMax(box_hi);
+    }
+    return true;
+}
+
 // A streamed element of at least this many blocks (4 MiB) is read in two halves, the second on a
 // thread of its own (the upload check runs after the last byte, while the client waits): a fixed
 // split, so the answer never depends on the number of cores.
@@ -364,6 +434,7 @@ public:
     }
 
     std::size_t remaining() const { return data_.size() - pos_; }
+    std::size_t position() const { return pos_; }
 
     // Upper bound on how many records of `e` the remaining data can hold (to size arrays safely).
     std::uint64_t MaxRecords(const Element& e) const {
@@ -381,9 +452,11 @@ public:
     // a record at or past it cannot be complete in the remaining data.
     // `stream` (only for a fixed-size binary element): every active sink points into its scratch
     // block, which ReadFixedBinary hands over block by block.
+    // `scanned` (with `stream`): the element's positions as a PlyPositionScan folded them in while
+    // the file arrived; they are taken instead of read (after the same truncation check).
     void Read(const Element& e, const std::vector<Sink>& sinks, FaceSink* faces, std::uint64_t capacity,
-              PositionStream* stream = nullptr) {
-        if (h_.format != PlyFormat::kAscii && !e.HasLists()) return ReadFixedBinary(e, sinks, stream);
+              PositionStream* stream = nullptr, const PositionStream* scanned = nullptr) {
+        if (h_.format != PlyFormat::kAscii && !e.HasLists()) return ReadFixedBinary(e, sinks, stream, scanned);
         std::vector<std::uint32_t> poly;
         for (std::uint64_t i = 0; i < e.count; ++i) {
             // An ascii record needs a line of its own, so running out is found (and reported) by
@@ -417,12 +490,17 @@ private:
                         std::to_string(data_.size()) + ")");
     }
 
-    void ReadFixedBinary(const Element& e, const std::vector<Sink>& sinks, PositionStream* stream) {
+    void ReadFixedBinary(const Element& e, const std::vector<Sink>& sinks, PositionStream* stream,
+                         const PositionStream* scanned) {
         const std::size_t rec = e.FixedSize();
         const std::uint64_t n = e.count;
         if (rec > 0 && n > remaining() / rec) Truncated(e, remaining() / rec);
         const std::uint64_t block = BlockRecords(e);
-        if (stream && rec > 0 && n / block >= kSplitBlocks) {
+        if (stream && scanned) {
+            stream->bounds = scanned->bounds;
+            stream->first_bad = scanned->first_bad;
+            stream->bad_value = scanned->bad_value;
+        } else if (stream && rec > 0 && n / block >= kSplitBlocks) {
             // The second half into a scratch block of its own: the sinks point into `stream`'s.
             const std::uint64_t mid = n / block / 2 * block;
             PositionStream second;
@@ -462,8 +540,19 @@ private:
         // Block by block (about 64 KiB of records each), every column of a block while it is in
         // the cache: one pass over the bytes instead of one per property.
         const std::uint64_t block = BlockRecords(e);  // `stream`'s scratch holds one
+        // A streamed element with float x, y, z in the machine's byte order: TakeFloatRecords.
+        std::size_t at[3] = {0, 0, 0};
+        bool plain = stream && !swap_ && rec % 4 == 0;
+        for (std::size_t k = 0, off = 0; plain && k < e.props.size(); off += ScalarSize(e.props[k].type), ++k)
+            for (int a = 0; a < 3; ++a)
+                if (static_cast<int>(k) == e.Find(std::string_view("xyz").substr(a, 1))) {
+                    at[a] = off;
+                    plain = plain && e.props[k].type == ScalarType::kFloat32 && off % 4 == 0;
+                }
         for (std::uint64_t b = first; rec > 0 && b < n; b += block) {
             const std::size_t m = static_cast<std::size_t>(std::min(block, n - b));
+            if (plain && stream->first_bad == UINT64_MAX && TakeFloatRecords(base + b * rec, m, rec, at, &stream->bounds))
+                continue;
             std::size_t off = 0;
             for (std::size_t k = 0; k < e.props.size(); ++k) {
                 if (sinks.size() > k && sinks[k].active()) {
@@ -593,6 +682,160 @@ const char* PlyFormatName(PlyFormat format) {
 
 namespace {
 
+// Where the x, y and z of a fixed-size binary vertex element lie in the file: what a
+// PlyPositionScan streamed, and what the whole-file parse must find again to take its result.
+struct PositionLayout {
+    PlyFormat format = PlyFormat::kAscii;
+    std::uint64_t offset = 0;  // of the vertex element's first record
+    std::uint64_t count = 0;
+    std::size_t record = 0;
+    std::size_t at[3] = {0, 0, 0};  // byte offsets of x, y, z in a record
+    ScalarType type[3] = {ScalarType::kFloat32, ScalarType::kFloat32, ScalarType::kFloat32};
+
+    bool operator==(const PositionLayout&) const = default;
+
+    // `vertex` of `h` starting at `offset`.
+    static PositionLayout Of(const Header& h, const Element& vertex, std::uint64_t offset) {
+        PositionLayout l;
+        l.format = h.format;
+        l.offset = offset;
+        l.count = vertex.count;
+        l.record = vertex.FixedSize();
+        const int axes[3] = {vertex.Find("x"), vertex.Find("y"), vertex.Find("z")};
+        std::size_t off = 0;
+        for (std::size_t k = 0; k < vertex.props.size(); ++k) {
+            for (int a = 0; a < 3; ++a)
+                if (axes[a] == static_cast<int>(k)) {
+                    l.at[a] = off;
+                    l.type[a] = vertex.props[k].type;
+                }
+            off += ScalarSize(vertex.props[k].is_list ? vertex.props[k].count_type : vertex.props[k].type);
+        }
+        return l;
+    }
+};
+
+}  // namespace
+
+struct PlyPositionScan::State {
+    PlyReadOptions options;
+    std::uint64_t bytes = 0;  // appended so far
+    enum class Phase { kHeader, kBody, kOff } phase = Phase::kHeader;
+    std::string head;            // the bytes so far, until the header has been parsed
+    std::size_t line_start = 0;  // of the first line of `head` not yet looked at
+    PositionLayout layout;
+    bool swap = false;
+    bool plain_floats = false;  // TakeFloatRecords can take the records
+    std::string carry;         // the start of a record cut off by the end of an Append
+    std::uint64_t folded = 0;  // vertex records in `stream`
+    PositionStream stream;     // its scratch holds one block
+
+    void Append(std::string_view piece) {
+        const std::uint64_t at = bytes;
+        bytes += piece.size();
+        if (phase == Phase::kOff) return;
+        if (phase == Phase::kBody) return Body(piece, at);
+        head.append(piece);
+        // The header ends at the first line whose first word is end_header (as ParseHeader
+        // reads it); it is parsed once that line's newline has arrived, never twice.
+        for (;;) {
+            const std::size_t nl = head.find('\n', line_start);
+            if (nl == std::string::npos) {
+                if (head.size() > options.max_header_bytes) Off();  // the parse refuses it
+                return;
+            }
+            std::string_view line(head.data() + line_start, nl - line_start);
+            if (!line.empty() && line.back() == '\r') line.remove_suffix(1);
+            line_start = nl + 1;
+            const auto tok = Tokenize(line);
+            if (!tok.empty() && tok[0] == "end_header") break;
+            if (line_start > options.max_header_bytes) return Off();
+        }
+        std::string all = std::move(head);
+        head = {};
+        try {
+            Start(all);
+        } catch (...) {  // a header the whole-file parse refuses (or no memory): it decides
+            return Off();
+        }
+    }
+
+    void Start(std::string_view all) {
+        const Header h = ParseHeader(all, "", options);
+        if (h.format == PlyFormat::kAscii || h.body_offset != line_start) return Off();
+        std::uint64_t offset = h.body_offset;
+        for (const Element& e : h.elements) {
+            if (e.HasLists()) return Off();  // the vertex records' offset depends on the data
+            if (e.name == "vertex") {
+                if (e.Find("x") < 0 || e.Find("y") < 0 || e.Find("z") < 0) return Off();
+                layout = PositionLayout::Of(h, e, offset);
+                swap = (h.format == PlyFormat::kBinaryBigEndian) == (std::endian::native == std::endian::little);
+                plain_floats = !swap && layout.record % 4 == 0;
+                for (int a = 0; a < 3; ++a)
+                    plain_floats = plain_floats && layout.type[a] == ScalarType::kFloat32 && layout.at[a] % 4 == 0;
+                stream.scratch.resize(static_cast<std::size_t>(std::max<std::uint64_t>(1, std::min(BlockRecords(e), e.count))));
+                phase = Phase::kBody;
+                return Body(all.substr(h.body_offset), h.body_offset);
+            }
+            offset += e.FixedSize() * e.count;
+        }
+        Off();  // no vertex element
+    }
+
+    // `piece` is the file's bytes from offset `at`.
+    void Body(std::string_view piece, std::uint64_t at) {
+        const std::uint64_t begin = std::max(at, layout.offset);
+        const std::uint64_t end = std::min<std::uint64_t>(at + piece.size(), layout.offset + layout.record * layout.count);
+        if (begin >= end) return;
+        const char* p = piece.data() + (begin - at);
+        std::size_t n = static_cast<std::size_t>(end - begin);
+        if (!carry.empty()) {
+            const std::size_t take = std::min(n, layout.record - carry.size());
+            carry.append(p, take);
+            p += take;
+            n -= take;
+            if (carry.size() < layout.record) return;
+            Fold(carry.data(), 1);
+            carry.clear();
+        }
+        const std::size_t whole = n / layout.record;
+        Fold(p, whole);
+        p += whole * layout.record;
+        carry.assign(p, n - whole * layout.record);
+    }
+
+    // `m` whole records from `p`: the columns into the scratch block, then as ReadBlocks does.
+    void Fold(const char* p, std::size_t m) {
+        const std::size_t block = stream.scratch.size();
+        float* base = stream.scratch.front().data();
+        for (std::size_t b = 0; b < m; b += block) {
+            const std::size_t k = std::min(block, m - b);
+            if (plain_floats && stream.first_bad == UINT64_MAX &&
+                TakeFloatRecords(p + b * layout.record, k, layout.record, layout.at, &stream.bounds)) {
+                folded += k;
+                continue;
+            }
+            if (stream.first_bad == UINT64_MAX)  // refused anyway, and Take would keep nothing
+                for (int a = 0; a < 3; ++a)
+                    ExtractColumn(layout.type[a], p + b * layout.record, layout.record, k, layout.at[a], swap,
+                                  Sink{base + a, nullptr, 3, 1.0f});
+            stream.Take(k, folded);
+            folded += k;
+        }
+    }
+
+    void Off() {
+        phase = Phase::kOff;
+        head = {};
+        carry = {};
+        stream.scratch = {};
+    }
+
+    bool complete() const { return phase == Phase::kBody && folded == layout.count; }
+};
+
+namespace {
+
 // "vertex 7, field 'y': coordinate is not finite (nan)"
 std::string NonFiniteMessage(std::uint64_t i, const Vec3f& p) {
     const int axis = !std::isfinite(p.x()) ? 0 : !std::isfinite(p.y()) ? 1 : 2;
@@ -604,8 +847,9 @@ std::string NonFiniteMessage(std::uint64_t i, const Vec3f& p) {
 // ParsePly, and InspectPly when `summary` is given: then only the positions are read
 // (positions_only), and those of a fixed-size binary vertex element are not even kept but
 // streamed through a block (PositionStream); the checks, their order and messages are the same.
+// `scan` (with `summary`): the positions as a PlyPositionScan of these bytes folded them in.
 PointCloud ParsePlyImpl(std::string_view data, std::string_view file, const PlyReadOptions& options,
-                        PlyHeaderInfo* info, PlySummary* summary) {
+                        PlyHeaderInfo* info, PlySummary* summary, const PlyPositionScan::State* scan = nullptr) {
     const Header h = ParseHeader(data, file, options);
     const Element* vertex = nullptr;
     for (const auto& e : h.elements)
@@ -715,7 +959,11 @@ PointCloud ParsePlyImpl(std::string_view data, std::string_view file, const PlyR
             }
         }
         const bool streamed = streaming && &e == vertex;
-        body.Read(e, sinks, faces.triangles ? &faces : nullptr, capacity, streamed ? &stream : nullptr);
+        // The scan's result only for exactly these bytes and this layout (else: read them here).
+        const bool scanned = streamed && scan && scan->complete() && scan->bytes == data.size() &&
+                             scan->layout == PositionLayout::Of(h, e, body.position());
+        body.Read(e, sinks, faces.triangles ? &faces : nullptr, capacity, streamed ? &stream : nullptr,
+                  scanned ? &scan->stream : nullptr);
         if (streamed) vertex_count = e.count;  // ReadFixedBinary refused a file too short for them
         if (faces.triangles && info) info->face_count = faces.polygons;
     }
@@ -761,10 +1009,33 @@ PointCloud ParsePly(std::string_view data, std::string_view file, const PlyReadO
 }
 
 PlySummary InspectPly(std::string_view data, std::string_view file, const PlyReadOptions& options) {
+    return InspectPly(data, file, options, nullptr);
+}
+
+PlySummary InspectPly(std::string_view data, std::string_view file, const PlyReadOptions& options,
+                      const PlyPositionScan* scan) {
     PlySummary summary;
-    ParsePlyImpl(data, file, options, nullptr, &summary);
+    ParsePlyImpl(data, file, options, nullptr, &summary, scan ? scan->state_.get() : nullptr);
     return summary;
 }
+
+PlyPositionScan::PlyPositionScan(const PlyReadOptions& options) : state_(std::make_unique<State>()) {
+    state_->options = options;
+}
+
+PlyPositionScan::~PlyPositionScan() = default;
+
+void PlyPositionScan::Append(std::string_view bytes) noexcept {
+    try {
+        state_->Append(bytes);
+    } catch (...) {  // no memory for the scan: the whole-file pass reads the positions
+        state_->Off();
+    }
+}
+
+std::uint64_t PlyPositionScan::bytes() const { return state_->bytes; }
+
+bool PlyPositionScan::complete() const { return state_->complete(); }
 
 // ---- Writing ---------------------------------------------------------------------------------------
 

@@ -13,6 +13,7 @@
 /// throw Error(kResourceExhausted).
 
 #include <cstdint>
+#include <memory>
 #include <string>
 #include <string_view>
 #include <vector>
@@ -77,6 +78,44 @@ struct PlySummary {
 /// (read a block of about 64 KiB at a time: no array of every position to allocate and fault
 /// in, issue 19.3). What InspectCloudFile runs for PLY uploads.
 PlySummary InspectPly(std::string_view data, std::string_view name, const PlyReadOptions& options = {});
+
+/// The positions part of InspectPly folded in while a file arrives in pieces (an upload's
+/// chunks, issue 19.3: the check runs beside the transfer, on bytes still in the cache). Append
+/// the file's bytes in order, from its first; the header is parsed once it has arrived, then
+/// each piece's vertex records (a record split between pieces included) go into the same count,
+/// bounds and first non-finite coordinate that InspectPly computes. InspectPly given a scan
+/// then runs every other check as before (header, truncation, other elements, trailing bytes,
+/// faces; the same errors in the same order) and takes the positions from the scan instead of
+/// reading them again, but only when the scan covered the whole vertex element of exactly these
+/// bytes with the layout its own header parse finds; otherwise (an ascii file, a vertex element
+/// with lists or after one, a header the scan could not parse, bytes not appended from the
+/// start) it reads them as without one. Not thread-safe; a result, never an error, is what it
+/// changes: it throws nothing.
+class PlyPositionScan {
+  public:
+    explicit PlyPositionScan(const PlyReadOptions& options = {});
+    ~PlyPositionScan();
+    PlyPositionScan(const PlyPositionScan&) = delete;
+    PlyPositionScan& operator=(const PlyPositionScan&) = delete;
+
+    /// The next bytes of the file.
+    void Append(std::string_view bytes) noexcept;
+    /// Bytes appended so far.
+    std::uint64_t bytes() const;
+    /// True when every vertex record has been folded in (InspectPly can use the scan if the
+    /// file is exactly bytes() long).
+    bool complete() const;
+
+    struct State;  ///< ply.cpp
+
+  private:
+    std::unique_ptr<State> state_;
+    friend PlySummary InspectPly(std::string_view, std::string_view, const PlyReadOptions&, const PlyPositionScan*);
+};
+
+/// InspectPly with the positions of `scan` (see PlyPositionScan; nullptr: InspectPly above).
+PlySummary InspectPly(std::string_view data, std::string_view name, const PlyReadOptions& options,
+                      const PlyPositionScan* scan);
 
 /// Reads a PLY file. Throws Error(kNotFound) when it cannot be opened.
 PointCloud ReadPly(const std::string& path, const PlyReadOptions& options = {},

@@ -255,6 +255,215 @@ TEST(InspectCloudFile, StreamedHalvesAgreeWithOnePassToTheBit) {
     }
 }
 
+// ---- The upload check folded in while the file arrives (PlyPositionScan) ---------------------
+
+// The bytes appended to a scan in pieces that end at `cuts` (offsets, ascending), then the check
+// with the scan against the check of the whole file without one: the same summary to the bit,
+// or the same code and message. Returns whether the scan covered every vertex record.
+bool ExpectScanMatchesWholeFile(const std::string& bytes, const std::string& name, const std::vector<std::size_t>& cuts,
+                                const PlyReadOptions& options = {}) {
+    PlyPositionScan scan(options);
+    std::size_t from = 0;
+    for (const std::size_t cut : cuts) {
+        const std::size_t to = std::min(cut, bytes.size());
+        if (to > from) scan.Append(std::string_view(bytes).substr(from, to - from));
+        from = std::max(from, to);
+    }
+    scan.Append(std::string_view(bytes).substr(from));
+    EXPECT_EQ(scan.bytes(), bytes.size());
+    std::optional<CloudFileSummary> whole;
+    std::string whole_error;
+    ErrorCode whole_code = ErrorCode::kInternal;
+    try {
+        whole = InspectCloudFile(bytes, name, options);
+    } catch (const Error& e) {
+        whole_error = e.what();
+        whole_code = e.code();
+    }
+    try {
+        const CloudFileSummary s = InspectCloudFile(bytes, name, options, &scan);
+        EXPECT_TRUE(whole.has_value()) << "only the scanned check accepted it";
+        if (whole) {
+            EXPECT_EQ(s.points, whole->points);
+            EXPECT_EQ(std::memcmp(s.bounds.min.data(), whole->bounds.min.data(), sizeof(Vec3f)), 0);
+            EXPECT_EQ(std::memcmp(s.bounds.max.data(), whole->bounds.max.data(), sizeof(Vec3f)), 0);
+            EXPECT_EQ(s.attributes, whole->attributes);
+            EXPECT_EQ(s.format, whole->format);
+        }
+    } catch (const Error& e) {
+        EXPECT_FALSE(whole.has_value()) << "only the scanned check refused it: " << e.what();
+        EXPECT_EQ(e.code(), whole_code);
+        EXPECT_EQ(std::string(e.what()), whole_error);
+    }
+    return scan.complete();
+}
+
+// FormatPly writes only the native byte order: big-endian by swapping every 4-byte value of a
+// body of 4-byte values.
+std::string AsBigEndian(std::string le) {
+    const std::size_t body = le.find("end_header\n") + 11;
+    le.replace(le.find("binary_little_endian"), 20, "binary_big_endian");
+    for (std::size_t i = body - 3; i + 4 <= le.size(); i += 4) std::reverse(le.begin() + i, le.begin() + i + 4);
+    return le;
+}
+
+// Every two-piece split (a cut at each byte: in the header, at its end, inside every record),
+// one-byte pieces, and pieces of a record's size plus or minus one.
+void ExpectScanMatchesAtEveryCut(const std::string& bytes, const std::string& name, bool expect_complete,
+                                 const PlyReadOptions& options = {}) {
+    SCOPED_TRACE(name);
+    for (std::size_t cut = 0; cut <= bytes.size(); ++cut)
+        EXPECT_EQ(ExpectScanMatchesWholeFile(bytes, name, {cut}, options), expect_complete) << "cut at " << cut;
+    for (const std::size_t piece : {std::size_t{1}, std::size_t{23}, std::size_t{25}, std::size_t{4096 + 3}}) {
+        std::vector<std::size_t> cuts;
+        for (std::size_t c = piece; c < bytes.size(); c += piece) cuts.push_back(c);
+        EXPECT_EQ(ExpectScanMatchesWholeFile(bytes, name, cuts, options), expect_complete) << "pieces of " << piece;
+    }
+}
+
+TEST(PlyPositionScan, AgreesWithTheWholeFileCheckOnValidFilesOfEveryFormat) {
+    ShapeOptions o;
+    o.points = 40;  // 24-byte records (positions and normals)
+    o.normals = true;
+    const PointCloud cloud = SampleShape(Shape::kTorus, o);
+    const std::string le = FormatPly(cloud);
+    ExpectScanMatchesAtEveryCut(le, "le.ply", true);
+    ExpectScanMatchesAtEveryCut(AsBigEndian(le), "be.ply", true);
+    PlyWriteOptions ascii;
+    ascii.format = PlyFormat::kAscii;
+    ExpectScanMatchesAtEveryCut(FormatPly(cloud, ascii), "ascii.ply", false);  // read after the last byte
+    // Doubles, an extra property before x and a header with CR LF, comments and end_header in one.
+    std::string odd = "ply\r\nformat binary_little_endian 1.0\r\ncomment end_header is not here\r\n"
+                      "element vertex 3\r\nproperty uchar tag\r\nproperty double z\r\nproperty double x\r\n"
+                      "property float y\r\nend_header\r\n";
+    for (int i = 0; i < 3; ++i) {
+        const std::uint8_t tag = static_cast<std::uint8_t>(7 * i);
+        const double z = -1.5 * i, x = 2.25 + i;
+        const float y = i == 1 ? -0.0f : 0.5f * i;
+        odd.append(reinterpret_cast<const char*>(&tag), 1);
+        odd.append(reinterpret_cast<const char*>(&z), 8);
+        odd.append(reinterpret_cast<const char*>(&x), 8);
+        odd.append(reinterpret_cast<const char*>(&y), 4);
+    }
+    ExpectScanMatchesAtEveryCut(odd, "odd.ply", true);
+    // Another element of fixed size before the vertices (their offset follows from the header),
+    // and faces after them; faces (a list) before the vertices: read after the last byte.
+    std::string before = "ply\nformat binary_little_endian 1.0\nelement camera 2\nproperty float f\n"
+                         "element vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n";
+    for (const float v : {9.0f, 8.0f, 1.0f, 2.0f, 3.0f, -4.0f, 5.0f, -6.0f}) before.append(reinterpret_cast<const char*>(&v), 4);
+    ExpectScanMatchesAtEveryCut(before, "camera.ply", true);
+    PointCloud mesh = cloud;
+    mesh.triangles = {{0, 1, 2}, {3, 4, 39}};
+    ExpectScanMatchesAtEveryCut(FormatPly(mesh), "mesh.ply", true);
+    const std::string faces_first = "ply\nformat binary_little_endian 1.0\nelement face 1\n"
+                                    "property list uchar int vertex_indices\nelement vertex 3\nproperty float x\n"
+                                    "property float y\nproperty float z\nend_header\n";
+    std::string ff = faces_first + std::string("\x03\0\0\0\0\x01\0\0\0\x02\0\0\0", 13);
+    for (int i = 0; i < 9; ++i) {
+        const float v = static_cast<float>(i);
+        ff.append(reinterpret_cast<const char*>(&v), 4);
+    }
+    ExpectScanMatchesAtEveryCut(ff, "faces-first.ply", false);
+    // Many blocks (64 KiB of records) in large pieces, cut inside records.
+    ShapeOptions big = o;
+    big.points = 66 * 2730 + 17;
+    const std::string large = FormatPly(SampleShape(Shape::kSphere, big));
+    std::vector<std::size_t> cuts;
+    for (std::size_t c = 100; c < large.size(); c += (1u << 20) + 5) cuts.push_back(c);
+    EXPECT_TRUE(ExpectScanMatchesWholeFile(large, "large.ply", cuts));
+    EXPECT_TRUE(ExpectScanMatchesWholeFile(AsBigEndian(large), "large-be.ply", cuts));
+}
+
+TEST(PlyPositionScan, RefusesWhatTheWholeFileCheckRefusesWithTheSameMessage) {
+    ShapeOptions o;
+    o.points = 30;
+    o.normals = true;
+    const PointCloud cloud = SampleShape(Shape::kSphere, o);
+    for (const bool big : {false, true}) {
+        auto as = [big](const std::string& le) { return big ? AsBigEndian(le) : le; };
+        for (const std::size_t bad : {std::size_t{0}, std::size_t{17}, std::size_t{29}}) {
+            PointCloud c = cloud;
+            c.positions[bad].y() = std::numeric_limits<float>::quiet_NaN();
+            if (bad == 17) c.positions[20].x() = std::numeric_limits<float>::infinity();  // the first is named
+            const std::string nan = as(FormatPly(c));
+            ExpectScanMatchesAtEveryCut(nan, "nan.ply", true);
+            ExpectScanMatchesAtEveryCut(nan + "junk", "nan-tail.ply", true);  // the tail is reported first
+        }
+        const std::string ok = as(FormatPly(cloud));
+        ExpectScanMatchesAtEveryCut(ok.substr(0, ok.size() - 5), "cut.ply", false);  // truncated in a record
+        ExpectScanMatchesAtEveryCut(ok + "xyz", "tail.ply", true);
+        PointCloud mesh = cloud;
+        mesh.triangles = {{0, 1, 30}};  // an index past the vertices
+        ExpectScanMatchesAtEveryCut(FormatPly(mesh), "mesh-bad.ply", true);
+    }
+    PlyReadOptions limits;
+    limits.max_points = 29;  // over the limit: kResourceExhausted from the header
+    ExpectScanMatchesAtEveryCut(FormatPly(cloud), "many.ply", false, limits);
+    const std::string header = "ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\n";
+    ExpectScanMatchesAtEveryCut(header + "property float z\nend_header\n" + std::string(8, '\0'), "no-y.ply", false);
+    ExpectScanMatchesAtEveryCut(header + "bogus line\nend_header\n" + std::string(4, '\0'), "bogus.ply", false);
+    ExpectScanMatchesAtEveryCut(header + "property float y\nproperty float z\nend_header", "no-newline.ply", false);
+    ExpectScanMatchesAtEveryCut("ply\nformat binary_little_endian 1.0\nelement vertex 0\nproperty float x\n"
+                                "property float y\nproperty float z\nend_header\n", "empty.ply", true);
+    ExpectScanMatchesAtEveryCut("not a ply file\n", "junk.ply", false);
+    ExpectScanMatchesAtEveryCut("1 2 3\n4 5 6\n", "points.xyz", false);
+}
+
+// Float positions in the machine's byte order are folded 16 bytes at a time (lane-wise minima and
+// maxima): Extend's bits for records of 3 to 9 floats, a zero of either sign at a bound (the
+// first one met is kept, so such a block goes the scalar way), and a non-finite coordinate named
+// as the whole-file check names it, in whole periods of the pattern and in the records after.
+TEST(PlyPositionScan, FoldsPlainFloatsToTheBitsOfExtend) {
+    ShapeOptions o;
+    o.points = 3 * 2730 + 5;
+    PointCloud base = SampleShape(Shape::kTorus, o);
+    for (Vec3f& p : base.positions) p = p.cwiseAbs() + Vec3f::Constant(1.0f);
+    for (int extras = 0; extras <= 6; ++extras) {
+        PointCloud cloud = base;
+        for (int k = 0; k < extras; ++k)
+            cloud.extras.push_back({std::string(1, static_cast<char>('a' + k)), ScalarType::kFloat32,
+                                    std::vector<double>(cloud.size(), k == 0 ? std::nan("") : 0.5)});
+        const std::string name = "plain" + std::to_string(extras) + ".ply";
+        std::vector<std::size_t> cuts;
+        for (std::size_t c = 333; c < cloud.size() * 40; c += 7777) cuts.push_back(c);
+        EXPECT_TRUE(ExpectScanMatchesWholeFile(FormatPly(cloud), name, cuts));  // no zeros: the vector path
+        PointCloud zeros = cloud;
+        zeros.positions[10].x() = 0.0f;  // +0 first, then -0: the lower x bound is +0
+        zeros.positions[20].x() = -0.0f;
+        zeros.positions[3000].y() = -0.0f;  // -0 then +0 in a later block: the lower y bound is -0
+        zeros.positions[4000].y() = 0.0f;
+        zeros.positions[8194].z() = -0.0f;  // in the records after the last whole period
+        EXPECT_TRUE(ExpectScanMatchesWholeFile(FormatPly(zeros), name, cuts));
+        const BoundingBox b = zeros.Bounds();
+        ASSERT_TRUE(std::signbit(b.min.y()) && !std::signbit(b.min.x()));
+        for (const std::size_t bad : {std::size_t{7}, std::size_t{2731}, cloud.size() - 1}) {
+            PointCloud c = cloud;
+            c.positions[bad].z() = -std::numeric_limits<float>::infinity();
+            EXPECT_TRUE(ExpectScanMatchesWholeFile(FormatPly(c), name, cuts));
+        }
+    }
+}
+
+// The scan's positions are what the check takes (it does not read them again): bytes of the same
+// size and layout but other positions get the scanned bounds. Appending exactly the file's bytes
+// is the caller's part (UploadSession appends each chunk it writes).
+TEST(PlyPositionScan, IsTakenInsteadOfReadingThePositionsAgain) {
+    PointCloud a = SmallCloud();
+    PointCloud b = a;
+    for (Vec3f& p : b.positions) p *= 2.0f;
+    const std::string bytes_a = FormatPly(a), bytes_b = FormatPly(b);
+    ASSERT_EQ(bytes_a.size(), bytes_b.size());
+    PlyPositionScan scan;
+    scan.Append(bytes_a);
+    ASSERT_TRUE(scan.complete());
+    const PlySummary s = InspectPly(bytes_b, "b.ply", {}, &scan);
+    EXPECT_EQ(s.bounds.min, a.Bounds().min);
+    EXPECT_EQ(s.bounds.max, a.Bounds().max);
+    // A different size (one byte more at the end): the scan is not taken, the bytes are read.
+    const PlySummary t = InspectPly(bytes_b + "\n", "b.ply", {}, &scan);
+    EXPECT_EQ(t.bounds.min, b.Bounds().min);
+}
+
 // ---- Files ------------------------------------------------------------------------------------
 
 TEST(FileBytes, WriteIsAtomicAndReadsBack) {
