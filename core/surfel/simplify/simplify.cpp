@@ -256,13 +256,18 @@ PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> nor
         NormalOptions no;
         no.orient_k = std::min<int>(10, static_cast<int>(m) - 1);
         OrientNormals(out.positions, out_knn, out.normals, no);
-    } else if (m >= 3) {
+    } else if (m >= 4) {
         NormalOptions no;
         no.k = std::min<int>(16, static_cast<int>(m) - 1);
         no.orient_k = std::min<int>(10, static_cast<int>(m) - 1);
         out_knn = out_tree->KnnAll(no.k);
         side.run([&] { nn = NearestDistances(out.positions, out_knn); });
         out.normals = EstimateNormals(*out_tree, out_knn, no).normals;
+    } else if (m == 3) {
+        // Too few for EstimateNormals (k >= 3 other points): the three representatives' plane.
+        const Vec3f cross = (out.positions[1] - out.positions[0]).cross(out.positions[2] - out.positions[0]);
+        const float len = cross.norm();
+        out.normals.assign(m, len > 0.0f && std::isfinite(len) ? Vec3f(cross / len) : Vec3f::UnitZ());
     } else {
         out.normals.assign(m, Vec3f::UnitZ());
     }

@@ -96,6 +96,25 @@ TEST_P(EveryMethod, SameOutputWhateverTheThreadCount) {
     }
 }
 
+TEST_P(EveryMethod, TinyTargetsGiveUnitNormalsAndCoveringRadii) {
+    // Three representatives are too few for the k-nearest normal estimate (k >= 3 others): they
+    // take their own plane's normal instead of failing on an option the user never set.
+    const PointCloud c = Sphere(2000);
+    for (std::size_t target = 1; target <= 5; ++target) {
+        SCOPED_TRACE("target " + std::to_string(target));
+        const SimplifyResult r = RunSimplify(c, GetParam(), target);
+        ASSERT_GE(r.cloud.size(), 1u);
+        ASSERT_LE(r.cloud.size(), 2 * target);
+        ASSERT_EQ(r.cloud.normals.size(), r.cloud.size());
+        ASSERT_EQ(r.cloud.radii.size(), r.cloud.size());
+        for (std::size_t i = 0; i < r.cloud.size(); ++i) {
+            EXPECT_NEAR(r.cloud.normals[i].norm(), 1.0f, 1e-5f);
+            EXPECT_TRUE(std::isfinite(r.cloud.radii[i]));
+            EXPECT_GT(r.cloud.radii[i], 0.0f);
+        }
+    }
+}
+
 TEST_P(EveryMethod, ColoursAreAveraged) {
     PointCloud c = Sphere(10000);
     c.colors.resize(c.size());
