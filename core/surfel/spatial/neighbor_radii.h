@@ -24,9 +24,9 @@ std::unique_ptr<UniformGrid> NeighborGrid(std::span<const Vec3f> points, int k);
 
 /// For each point i, the distance to its k-th nearest neighbour among the other points (a
 /// duplicate of p_i counts, at distance 0); k is clamped to points.size() - 1, and every
-/// distance is 0 when there are fewer than 2 points. Exact: the same neighbours as
-/// KdTree::KnnAll(k), which it falls back to where a grid does not suit the cloud; the distances
-/// equal KnnAll's bit for bit except for the rows searched outwards (below), whose squared
+/// distance is 0 when there are fewer than 2 points. Exact: the distance of KdTree::KnnAll(k)'s
+/// k-th neighbour (KnnAll is its fallback where a grid does not suit the cloud), bit for bit
+/// except for the rows searched outwards (below), whose squared
 /// distances are summed x^2 + (y^2 + z^2) instead of (x^2 + y^2) + z^2 and may differ in the last
 /// bit (NearestDistances explains; session 15 kept the values, which every output depends on).
 ///
