@@ -623,16 +623,20 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
             __builtin_prefetch(&node[next]);
             __builtin_prefetch(reinterpret_cast<const char*>(&node[next]) + 64);
         }
+        // The records, keys and heap places of x's and y's neighbours (a first wave).
+        auto prefetch_neighbours = [&](std::uint32_t x, std::uint32_t y) {
+            for (const std::uint32_t z : {x, y})
+                for (std::uint32_t e = node[z].row.start; e < node[z].row.start + node[z].row.degree; ++e) {
+                    const std::uint32_t w = pool[e].id;
+                    __builtin_prefetch(&node[w]);
+                    __builtin_prefetch(reinterpret_cast<const char*>(&node[w]) + 64);
+                    __builtin_prefetch(&best[w]);
+                    __builtin_prefetch(&mate[w]);
+                    heap.PrefetchPosition(w);
+                }
+        };
         const PairFit f = fit(u, v, u_input, v_input);
-        for (const std::uint32_t x : {u, v})
-            for (std::uint32_t e = node[x].row.start; e < node[x].row.start + node[x].row.degree; ++e) {
-                const std::uint32_t w = pool[e].id;
-                __builtin_prefetch(&node[w]);
-                __builtin_prefetch(reinterpret_cast<const char*>(&node[w]) + 64);
-                __builtin_prefetch(&best[w]);
-                __builtin_prefetch(&mate[w]);
-                heap.PrefetchPosition(w);
-            }
+        prefetch_neighbours(u, v);
         const std::uint32_t next_mate = next != kNone ? mate[next] : kNone;
         if (next_mate < n) {
             __builtin_prefetch(&node[next_mate]);
@@ -693,17 +697,7 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
             pool[node[u].row.start + j] = {cost, w, merged[j].input};
             set_cost_at(w, merged[j].input, u, u_input, cost, v_input);
         }
-        if (next_mate < n && next != v && next_mate != v) {  // the next pair's neighbours
-            for (const std::uint32_t x : {next, next_mate})
-                for (std::uint32_t e = node[x].row.start; e < node[x].row.start + node[x].row.degree; ++e) {
-                    const std::uint32_t w = pool[e].id;
-                    __builtin_prefetch(&node[w]);
-                    __builtin_prefetch(reinterpret_cast<const char*>(&node[w]) + 64);
-                    __builtin_prefetch(&best[w]);
-                    __builtin_prefetch(&mate[w]);
-                    heap.PrefetchPosition(w);
-                }
-        }
+        if (next_mate < n && next != v && next_mate != v) prefetch_neighbours(next, next_mate);  // the next pair's
         rescan(u, u_input);
         heap.Update(u);
         --count;

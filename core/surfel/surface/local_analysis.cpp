@@ -815,10 +815,8 @@ std::size_t OrientNormals(const KdTree& tree, std::vector<Vec3f>& normals, const
                           std::size_t* flipped, const ProgressFn& progress) {
     options.Validate();
     const std::size_t n = tree.size();
-    SURFEL_CHECK(normals.size() == n, normals.size() << " normals for " << n << " points");
     const int kk = std::max(1, std::min<int>(options.orient_k, static_cast<int>(n) - 1));
-    const KnnTable knn = n > 1 ? tree.KnnAll(kk) : KnnTable{};
-    return OrientOverGraph(tree.points(), normals, knn, kk, options.orient_crossing_weight, flipped, progress);
+    return OrientNormals(tree.points(), n > 1 ? tree.KnnAll(kk) : KnnTable{}, normals, options, flipped, progress);
 }
 
 std::size_t OrientNormals(std::span<const Vec3f> points, const KnnTable& knn, std::vector<Vec3f>& normals,
