@@ -427,11 +427,14 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
     // through `at`; the input's float point is the same value).
     // Quadrics: one tangent plane per edge, spanned by e_i = p - p_i and b_i = e_i x n (the sign
     // of n does not matter: a quadric holds n n^T, d n and d^2).
+    // room[i + 1]: the pool's room for node i's list (see the pool below), summed after this pass.
+    std::vector<std::uint32_t> room(n + 1, 0);
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 4096), [&](const tbb::blocked_range<std::size_t>& r) {
         for (std::size_t i = r.begin(); i != r.end(); ++i) {
             auto b = graph.begin() + first[i], e = graph.begin() + first[i + 1];
             std::sort(b, e);
             const auto degree = static_cast<std::uint32_t>(std::unique(b, e) - b);
+            room[i + 1] = std::min(first[i + 1] - first[i], degree + kSlack);
             const Eigen::Vector3d p = points[input_of[i]].cast<double>();
             const Eigen::Vector3d ni = normals[input_of[i]].cast<double>();
             Quadric q{};
@@ -473,9 +476,9 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
     // Room for kSlack more entries than a list holds (its row's repeats are not kept: 44 % of the
     // rows' entries on the merged scans); a list that outgrows its room takes over the removed
     // node's room when that is large enough, else moves to the end (session 14: 70 -> 53 MB).
-    std::vector<std::uint32_t> room(n + 1, 0);
-    for (std::size_t i = 0; i < n; ++i)
-        room[i + 1] = room[i] + std::min(first[i + 1] - first[i], node[i].row.degree + kSlack);
+    // (The sizes come from the pass above: summing them here from node[i].row.degree read one
+    // 128-byte record per node, serially.)
+    for (std::size_t i = 0; i < n; ++i) room[i + 1] += room[i];
     BigVector<Entry> pool;
     pool.reserve(static_cast<std::size_t>(first[n]) * 2);
     pool.resize(static_cast<std::size_t>(room[n]));
