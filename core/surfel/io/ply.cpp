@@ -424,6 +424,48 @@ bool TakeFloatRecords(const char* p, std::size_t m, std::size_t rec, const std::
 // split, so the answer never depends on the number of cores.
 constexpr std::uint64_t kSplitBlocks = 64;
 
+// Where the x, y and z of a fixed-size binary vertex element lie in the file: what a
+// PlyPositionScan streamed, and what the whole-file parse must find again to take its result.
+struct PositionLayout {
+    PlyFormat format = PlyFormat::kAscii;
+    std::uint64_t offset = 0;  // of the vertex element's first record
+    std::uint64_t count = 0;
+    std::size_t record = 0;
+    std::size_t at[3] = {0, 0, 0};  // byte offsets of x, y, z in a record
+    ScalarType type[3] = {ScalarType::kFloat32, ScalarType::kFloat32, ScalarType::kFloat32};
+
+    bool operator==(const PositionLayout&) const = default;
+
+    // Whether TakeFloatRecords can take the records: float x, y, z on 4-byte offsets of records
+    // of a multiple of 4 bytes, in the machine's byte order (`swap` false).
+    bool PlainFloats(bool swap) const {
+        bool plain = !swap && record % 4 == 0;
+        for (int a = 0; a < 3; ++a) plain = plain && type[a] == ScalarType::kFloat32 && at[a] % 4 == 0;
+        return plain;
+    }
+
+    // `vertex` of `h` starting at `offset`.
+    static PositionLayout Of(const Header& h, const Element& vertex, std::uint64_t offset) {
+        PositionLayout l;
+        l.format = h.format;
+        l.offset = offset;
+        l.count = vertex.count;
+        l.record = vertex.FixedSize();
+        const int axes[3] = {vertex.Find("x"), vertex.Find("y"), vertex.Find("z")};
+        std::size_t off = 0;
+        for (std::size_t k = 0; k < vertex.props.size(); ++k) {
+            for (int a = 0; a < 3; ++a)
+                if (axes[a] == static_cast<int>(k)) {
+                    l.at[a] = off;
+                    l.type[a] = vertex.props[k].type;
+                }
+            off += ScalarSize(vertex.props[k].is_list ? vertex.props[k].count_type : vertex.props[k].type);
+        }
+        return l;
+    }
+};
+
+
 class BodyReader {
 public:
     BodyReader(std::string_view data, std::string_view file, const Header& h)
@@ -541,17 +583,11 @@ private:
         // the cache: one pass over the bytes instead of one per property.
         const std::uint64_t block = BlockRecords(e);  // `stream`'s scratch holds one
         // A streamed element with float x, y, z in the machine's byte order: TakeFloatRecords.
-        std::size_t at[3] = {0, 0, 0};
-        bool plain = stream && !swap_ && rec % 4 == 0;
-        for (std::size_t k = 0, off = 0; plain && k < e.props.size(); off += ScalarSize(e.props[k].type), ++k)
-            for (int a = 0; a < 3; ++a)
-                if (static_cast<int>(k) == e.Find(std::string_view("xyz").substr(a, 1))) {
-                    at[a] = off;
-                    plain = plain && e.props[k].type == ScalarType::kFloat32 && off % 4 == 0;
-                }
+        const PositionLayout layout = stream ? PositionLayout::Of(h_, e, 0) : PositionLayout{};
+        const bool plain = stream && layout.PlainFloats(swap_);
         for (std::uint64_t b = first; rec > 0 && b < n; b += block) {
             const std::size_t m = static_cast<std::size_t>(std::min(block, n - b));
-            if (plain && stream->first_bad == UINT64_MAX && TakeFloatRecords(base + b * rec, m, rec, at, &stream->bounds))
+            if (plain && stream->first_bad == UINT64_MAX && TakeFloatRecords(base + b * rec, m, rec, layout.at, &stream->bounds))
                 continue;
             std::size_t off = 0;
             for (std::size_t k = 0; k < e.props.size(); ++k) {
@@ -680,42 +716,6 @@ const char* PlyFormatName(PlyFormat format) {
     return "?";
 }
 
-namespace {
-
-// Where the x, y and z of a fixed-size binary vertex element lie in the file: what a
-// PlyPositionScan streamed, and what the whole-file parse must find again to take its result.
-struct PositionLayout {
-    PlyFormat format = PlyFormat::kAscii;
-    std::uint64_t offset = 0;  // of the vertex element's first record
-    std::uint64_t count = 0;
-    std::size_t record = 0;
-    std::size_t at[3] = {0, 0, 0};  // byte offsets of x, y, z in a record
-    ScalarType type[3] = {ScalarType::kFloat32, ScalarType::kFloat32, ScalarType::kFloat32};
-
-    bool operator==(const PositionLayout&) const = default;
-
-    // `vertex` of `h` starting at `offset`.
-    static PositionLayout Of(const Header& h, const Element& vertex, std::uint64_t offset) {
-        PositionLayout l;
-        l.format = h.format;
-        l.offset = offset;
-        l.count = vertex.count;
-        l.record = vertex.FixedSize();
-        const int axes[3] = {vertex.Find("x"), vertex.Find("y"), vertex.Find("z")};
-        std::size_t off = 0;
-        for (std::size_t k = 0; k < vertex.props.size(); ++k) {
-            for (int a = 0; a < 3; ++a)
-                if (axes[a] == static_cast<int>(k)) {
-                    l.at[a] = off;
-                    l.type[a] = vertex.props[k].type;
-                }
-            off += ScalarSize(vertex.props[k].is_list ? vertex.props[k].count_type : vertex.props[k].type);
-        }
-        return l;
-    }
-};
-
-}  // namespace
 
 struct PlyPositionScan::State {
     PlyReadOptions options;
@@ -770,9 +770,7 @@ struct PlyPositionScan::State {
                 if (e.Find("x") < 0 || e.Find("y") < 0 || e.Find("z") < 0) return Off();
                 layout = PositionLayout::Of(h, e, offset);
                 swap = (h.format == PlyFormat::kBinaryBigEndian) == (std::endian::native == std::endian::little);
-                plain_floats = !swap && layout.record % 4 == 0;
-                for (int a = 0; a < 3; ++a)
-                    plain_floats = plain_floats && layout.type[a] == ScalarType::kFloat32 && layout.at[a] % 4 == 0;
+                plain_floats = layout.PlainFloats(swap);
                 stream.scratch.resize(static_cast<std::size_t>(std::max<std::uint64_t>(1, std::min(BlockRecords(e), e.count))));
                 phase = Phase::kBody;
                 return Body(all.substr(h.body_offset), h.body_offset);
