@@ -90,22 +90,6 @@ void SimplifyWith(benchmark::State& state, const std::string& d, SimplifyMethod 
     SimplifyCounters(state, d, r.cloud);
 }
 
-// The paper's framing (Adamson & Alexa 2003, section 6: 42,463 of 80,000 rays hit their rabbit):
-// 320 x 250 = 80,000 rays, the eye on the +z axis through the bunny's bounding-box centre, 0.2515
-// in front of it, fovy 40 (the default), the default light (over the camera's left shoulder) with
-// shadows. The same image as
-//   surfel render bunny.ply --width 320 --height 250 --eye -0.0168,0.1102,0.25
-//       --target -0.0168,0.1102,-0.0015 -o bunny.exr --json
-// (32,856 hits: 41 %). The loose framing (Camera::Framing, 89 % misses) is the second row.
-Camera PaperCamera() {
-    Camera c;
-    c.width = 320;
-    c.height = 250;
-    c.eye = Vec3d(-0.0168, 0.1102, 0.25);
-    c.target = Vec3d(-0.0168, 0.1102, -0.0015);
-    return c;
-}
-
 void RenderBench(benchmark::State& state, const std::string& d, const Camera& camera) {
     const PointCloud& c = Dataset(d);
     RenderOptions o;

@@ -1,6 +1,7 @@
 #!/usr/bin/env python3
 """Runs Surfel's benchmarks and the peers' (CGAL, PCL, Open3D) in one go and writes markdown
 tables with ratios: bench/compare.py [--bin build/bin] [--out bench/results.md] [--filter REGEX]
+[--json ROWS] (then bench/compare.py --from-json ROWS --out FILE writes the tables again)
 
 Each benchmark runs in its own process, so `peak_rss_mb` is that benchmark's own peak (the
 dataset loaded plus the algorithm). Times are wall-clock (both cores available to everyone);
@@ -29,10 +30,17 @@ SIMPLIFY_PEER_NAMES = {("CGAL 5.5", "hierarchical"): "hierarchy_simplify_point_s
                        ("PCL 1.13", "voxel"): "VoxelGrid", ("Open3D 0.16", "voxel"): "VoxelDownSample"}
 
 
+def filter_escape(name):
+    """`name` as a literal in Google Benchmark's filter. Not re.escape: it escapes '-' too, which
+    the library's std::regex rejects ("Invalid escape"), and the run then exits 0 having run
+    nothing (the hierarchical-positions rows)."""
+    return re.sub(r"([.^$|?*+()\[\]{}\\])", r"\\\1", name)
+
+
 def run_benchmark(exe, name, repetitions=1):
     """One process running one benchmark; its JSON records (the median aggregate when repeated)."""
     with tempfile.NamedTemporaryFile(suffix=".json") as out:
-        args = [exe, f"--benchmark_filter=^{re.escape(name)}$", f"--benchmark_out={out.name}",
+        args = [exe, f"--benchmark_filter=^{filter_escape(name)}$", f"--benchmark_out={out.name}",
                 "--benchmark_out_format=json"]
         if repetitions > 1:
             args += [f"--benchmark_repetitions={repetitions}", "--benchmark_report_aggregates_only=true"]
@@ -40,7 +48,11 @@ def run_benchmark(exe, name, repetitions=1):
         if r.returncode != 0:
             print(f"compare: {name} failed:\n{r.stderr[-2000:]}", file=sys.stderr)
             return None
-        records = json.load(open(out.name))["benchmarks"]
+        text = open(out.name).read()
+        if not text.strip():
+            print(f"compare: {name} ran nothing:\n{r.stderr[-2000:]}", file=sys.stderr)
+            return None
+        records = json.loads(text)["benchmarks"]
         if repetitions > 1:
             records = [b for b in records if b.get("aggregate_name") == "median"] or records
         return records
@@ -137,7 +149,7 @@ def core_section(rows):
              "mls_project = Surfel's defaults, h = 2 x median spacing, 3h, given to PCL too; _c15/_c20 = "
              "Surfel cut at 1.5h/2h; _pcl_r10/15/20 = PCL's own weighting exp(-d²/r²) at r = 1, 1.5, 2 h)",
              [("radius", "support radius"), ("points", "points projected"),
-              ("mesh_mean", "mean distance to bunny_mesh"), ("mesh_rms", "RMS distance")])]:
+              ("mesh_mean", "mean distance to the mesh"), ("mesh_rms", "RMS distance")])]:
         lines += [f"### {title}", ""]
         match = (lambda t: t.startswith("mls_project")) if task == "mls_project" else (lambda t: t == task)
         for dataset in sorted({r["dataset"] for r in rows if match(r["task"])}):
@@ -180,8 +192,10 @@ def simplify_section(rows):
              "`cover p95` is the 95th percentile of the distance from points spread uniformly over bunny_mesh.ply "
              "(person_scan: from its input points) to the nearest output point, relative to the diagonal; "
              "`mesh` is the mean distance of the output points to bunny_mesh.ply (bunny only). "
-             "`vs surfel` divides by Surfel's time for the same kind of method (hierarchical for "
-             "CGAL's hierarchy, voxel for the grids, particle for WLOP).", ""]
+             "`vs surfel` divides by Surfel's time for the same kind of method (voxel for the grids, "
+             "particle for WLOP; for CGAL's hierarchy, Surfel's hierarchical clustering with positions only "
+             "at CGAL's count, `hierarchical-positions-cgal-count`, what CGAL returns: `hierarchical` also "
+             "estimates and orients the output's normals and gives each point a radius).", ""]
     sel = [r for r in rows if r["task"].startswith("simplify_")]
     for key in sorted({(r["dataset"], r["task"].rsplit("_", 1)[1]) for r in sel}):
         dataset, pct = key
@@ -192,6 +206,9 @@ def simplify_section(rows):
             method = r["task"].split("_")[1]
             name = method if r["impl"] == "surfel" else SIMPLIFY_PEER_NAMES.get((r["impl"], method), method)
             ref = ours.get({"wlop": "particle"}.get(method, method))
+            if r["impl"] == "CGAL 5.5" and method == "hierarchical":
+                # Like for like: CGAL returns positions only, at its own count.
+                ref = ours.get("hierarchical-positions-cgal-count") or ours.get("hierarchical-positions") or ref
             ratio = f"{r['ms'] / ref['ms']:.2f}×" if ref and r["impl"] != "surfel" else "–"
             body.append([f"{r['impl']} {name}", int(r.get("points", 0)), r["ms"], r.get("cpu_ms", "–"), ratio,
                          r.get("err_avg_rel", "–"), r.get("cover_p95", "–"), r.get("err_avg_ps_rel", "–"), r.get("err_avg_lin_rel", "–"),
@@ -212,9 +229,11 @@ def main():
     ap.add_argument("--out", default="bench/results.md")
     ap.add_argument("--filter", default="")
     ap.add_argument("--json", help="also keep the raw rows here")
+    ap.add_argument("--from-json", metavar="FILE",
+                    help="write the tables from the rows a --json run kept, running nothing")
     a = ap.parse_args()
-    rows = run_all(a.bin, a.filter)
-    if a.json:
+    rows = json.load(open(a.from_json)) if a.from_json else run_all(a.bin, a.filter)
+    if a.json and not a.from_json:
         json.dump(rows, open(a.json, "w"), indent=1)
     uname = os.uname()
     lines = [f"# Benchmark results ({datetime.date.today()}, {os.cpu_count()} cores, {uname.sysname} "
