@@ -171,6 +171,42 @@ INSTANTIATE_TEST_SUITE_P(Simplify, AdaptiveMethod,
                                            SimplifyMethod::kParticle),
                          [](const auto& p) { return std::string(SimplifyMethodName(p.param)); });
 
+// The voxel method searches the cell size for the target: on a jittered lattice over the unit
+// square (whose count is a step function of the cell size, not monotone near the target) every
+// target from one cluster to nearly one point a cluster comes out exact, every label is used,
+// and no cluster is much wider than the cell a plane of that many cells has (1 / sqrt(target)):
+// the search settled on a grid near the target and left AdjustCount only a few merges.
+TEST(Simplify, VoxelSearchReachesEveryTargetWithClustersNearTheCellSize) {
+    PointCloud plane;
+    std::mt19937 rng(7);
+    std::uniform_real_distribution<float> jitter(-0.1f, 0.1f);
+    constexpr int kSide = 200;
+    for (int i = 0; i < kSide; ++i)
+        for (int j = 0; j < kSide; ++j)
+            plane.positions.emplace_back((i + 0.5f + jitter(rng)) / kSide, (j + 0.5f + jitter(rng)) / kSide, 0.0f);
+    for (const std::size_t target : {1u, 2u, 7u, 100u, 1000u, 2500u, 10000u, 30000u, 39000u}) {
+        SCOPED_TRACE("target " + std::to_string(target));
+        SimplifyOptions so;
+        so.method = SimplifyMethod::kVoxel;
+        so.target = target;
+        ProgressTracker tracker({}, 1.0, "test");
+        const Clustering c = detail::VoxelClustering(plane.positions, so, tracker);
+        ASSERT_EQ(c.count, target);
+        ASSERT_EQ(c.label.size(), plane.size());
+        std::vector<Vec3f> lo(c.count, Vec3f::Constant(2.0f)), hi(c.count, Vec3f::Constant(-2.0f));
+        for (std::size_t i = 0; i < plane.size(); ++i) {
+            ASSERT_LT(c.label[i], c.count);
+            lo[c.label[i]] = lo[c.label[i]].cwiseMin(plane.positions[i]);
+            hi[c.label[i]] = hi[c.label[i]].cwiseMax(plane.positions[i]);
+        }
+        const float cell = 1.0f / std::sqrt(static_cast<float>(target));
+        for (std::size_t k = 0; k < c.count; ++k) {
+            ASSERT_LE(lo[k].x(), hi[k].x()) << "cluster " << k << " is empty";
+            EXPECT_LE((hi[k] - lo[k]).maxCoeff(), 2.5f * cell) << "cluster " << k;
+        }
+    }
+}
+
 TEST(Simplify, IterativeIsCurvatureAdaptiveByItsQuadrics) {
     ShapeOptions o;
     o.points = 30000;
