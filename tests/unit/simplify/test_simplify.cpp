@@ -207,6 +207,35 @@ TEST(Simplify, VoxelSearchReachesEveryTargetWithClustersNearTheCellSize) {
     }
 }
 
+// Incremental clustering searches its size bound n_max for the target: exact counts from one
+// cluster to nearly one point a cluster, every label used, and where the clusters grow to n_max
+// (the plane above, n / target points a cluster) the largest cluster holds about that many.
+TEST(Simplify, IncrementalSearchReachesEveryTarget) {
+    PointCloud plane;
+    std::mt19937 rng(11);
+    std::uniform_real_distribution<float> u(0.0f, 1.0f);
+    for (int i = 0; i < 20000; ++i) plane.positions.emplace_back(u(rng), u(rng), 0.0f);
+    for (const std::size_t target : {1u, 2u, 7u, 100u, 1000u, 5000u, 19000u}) {
+        SCOPED_TRACE("target " + std::to_string(target));
+        SimplifyOptions so;
+        so.method = SimplifyMethod::kIncremental;
+        so.target = target;
+        ProgressTracker tracker({}, 1.0, "test");
+        const Clustering c = detail::IncrementalClustering(plane.positions, so, tracker);
+        ASSERT_EQ(c.count, target);
+        std::vector<std::size_t> size(c.count, 0);
+        for (const std::uint32_t l : c.label) {
+            ASSERT_LT(l, c.count);
+            ++size[l];
+        }
+        EXPECT_EQ(std::count(size.begin(), size.end(), 0u), 0);
+        if (target >= 100 && target <= 5000) {
+            const double mean = 20000.0 / static_cast<double>(target);
+            EXPECT_LE(static_cast<double>(*std::max_element(size.begin(), size.end())), 2.5 * mean + 2);
+        }
+    }
+}
+
 TEST(Simplify, IterativeIsCurvatureAdaptiveByItsQuadrics) {
     ShapeOptions o;
     o.points = 30000;
