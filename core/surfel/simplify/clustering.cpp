@@ -796,7 +796,7 @@ Clustering IncrementalClustering(std::span<const Vec3f> points, const SimplifyOp
     // the last two (-1 before there are two), then regula falsi (Illinois) on log count against
     // log n_max between the nearest sizes measured on either side; a guess on an end takes its
     // neighbour inside (or, below the sizes measured at or above the target, twice the largest),
-    // and after 8 passes the search bisects. Session 16: the bisection's 4-12
+    // and after 8 passes the search bisects. Session 16: the bisection's 6-9
     // region growings were ~60 % of the method's CPU on the merged scans; this takes 2-3 there.
     constexpr int kSteps = 24;
     const double log_target = std::log(static_cast<double>(options.target));
@@ -927,7 +927,7 @@ Clustering VoxelClustering(std::span<const Vec3f> points, const SimplifyOptions&
     // monotone in the size near the target (the cells' alignment moves it by a few tenths of a
     // per cent), so the search stops within 0.25 % above the target or once the two sizes agree
     // to 0.1 %, and keeps the smallest count it saw at or above the target; AdjustCount merges
-    // the rest. Session 16: plain bisection from diag / 1e6 took 14-40 passes over the points
+    // the rest. Session 16: plain bisection took about 15 passes over the points, up to 41
     // (about half the voxel method's time on the merged scans).
     const double log_target = std::log(static_cast<double>(target));
     constexpr double kSettled = 1e-3;  // sizes 0.1 % apart: the count moves by the cells' alignment
