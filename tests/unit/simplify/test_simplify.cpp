@@ -171,6 +171,16 @@ INSTANTIATE_TEST_SUITE_P(Simplify, AdaptiveMethod,
                                            SimplifyMethod::kParticle),
                          [](const auto& p) { return std::string(SimplifyMethodName(p.param)); });
 
+// detail::VoxelClustering or detail::IncrementalClustering of `points` to `target` clusters.
+Clustering ClusterTo(SimplifyMethod method, std::span<const Vec3f> points, std::size_t target) {
+    SimplifyOptions so;
+    so.method = method;
+    so.target = target;
+    ProgressTracker tracker({}, 1.0, "test");
+    return method == SimplifyMethod::kVoxel ? detail::VoxelClustering(points, so, tracker)
+                                            : detail::IncrementalClustering(points, so, tracker);
+}
+
 // The voxel method searches the cell size for the target: on a jittered lattice over the unit
 // square (whose count is a step function of the cell size, not monotone near the target) every
 // target from one cluster to nearly one point a cluster comes out exact, every label is used,
@@ -186,11 +196,7 @@ TEST(Simplify, VoxelSearchReachesEveryTargetWithClustersNearTheCellSize) {
             plane.positions.emplace_back((i + 0.5f + jitter(rng)) / kSide, (j + 0.5f + jitter(rng)) / kSide, 0.0f);
     for (const std::size_t target : {1u, 2u, 7u, 100u, 1000u, 2500u, 10000u, 30000u, 39000u}) {
         SCOPED_TRACE("target " + std::to_string(target));
-        SimplifyOptions so;
-        so.method = SimplifyMethod::kVoxel;
-        so.target = target;
-        ProgressTracker tracker({}, 1.0, "test");
-        const Clustering c = detail::VoxelClustering(plane.positions, so, tracker);
+        const Clustering c = ClusterTo(SimplifyMethod::kVoxel, plane.positions, target);
         ASSERT_EQ(c.count, target);
         ASSERT_EQ(c.label.size(), plane.size());
         std::vector<Vec3f> lo(c.count, Vec3f::Constant(2.0f)), hi(c.count, Vec3f::Constant(-2.0f));
@@ -217,11 +223,7 @@ TEST(Simplify, IncrementalSearchReachesEveryTarget) {
     for (int i = 0; i < 20000; ++i) plane.positions.emplace_back(u(rng), u(rng), 0.0f);
     for (const std::size_t target : {1u, 2u, 7u, 100u, 1000u, 5000u, 19000u}) {
         SCOPED_TRACE("target " + std::to_string(target));
-        SimplifyOptions so;
-        so.method = SimplifyMethod::kIncremental;
-        so.target = target;
-        ProgressTracker tracker({}, 1.0, "test");
-        const Clustering c = detail::IncrementalClustering(plane.positions, so, tracker);
+        const Clustering c = ClusterTo(SimplifyMethod::kIncremental, plane.positions, target);
         ASSERT_EQ(c.count, target);
         std::vector<std::size_t> size(c.count, 0);
         for (const std::uint32_t l : c.label) {
