@@ -762,6 +762,72 @@ Clustering GrowClusters(std::span<const Vec3f> points, const KnnTable& graph, co
 
 }  // namespace
 
+namespace {
+
+// Searches a parameter for a target count when the count falls as the parameter grows and goes
+// about as parameter^slope (the voxel method's cell size: -2 on a surface; incremental
+// clustering's n_max: -1), on log(parameter) against log(count). `lo` and `hi` bracket it: at
+// lo the count is at least the target, at hi below it (assumed until measured). While only one
+// side has been measured, Next() follows the slope through the last two measurements (the
+// given slope before there are two; it may then leave the bracket: the caller decides); then
+// regula falsi between lo and hi, Illinois variant (an end that stays again has its distance
+// to the target halved each time, so that a one-sided approach still closes in), the midpoint
+// where that would land within 2 % of either end (a count at the target has no slope to follow).
+class LogCountSearch {
+public:
+    LogCountSearch(double lo, double hi, std::size_t target, double slope)
+        : lo_(lo), hi_(hi), log_target_(std::log(static_cast<double>(target))), target_(target),
+          default_slope_(slope), slope_(slope) {}
+    double lo() const { return lo_; }
+    double hi() const { return hi_; }
+    /// Only counts at or above the target measured so far.
+    bool OnlyAtLeast() const { return lo_measured_ && !hi_measured_; }
+
+    /// The count at log parameter x.
+    void Measure(double x, std::size_t count) {
+        const double log_count = std::log(std::max<double>(1.0, static_cast<double>(count)));
+        if (count >= target_) {
+            lo_ = x;
+            log_lo_count_ = log_count;
+            lo_measured_ = true;
+            ++hi_kept_;
+            lo_kept_ = 0;
+        } else {
+            hi_ = x;
+            log_hi_count_ = log_count;
+            hi_measured_ = true;
+            ++lo_kept_;
+            hi_kept_ = 0;
+        }
+        slope_ = default_slope_;
+        if (measured_ > 0 && x != last_x_ && log_count != last_log_count_)
+            slope_ = std::min(-0.05, (log_count - last_log_count_) / (x - last_x_));
+        last_x_ = x;
+        last_log_count_ = log_count;
+        ++measured_;
+    }
+
+    /// The log parameter to measure next.
+    double Next() const {
+        if (lo_measured_ != hi_measured_) return last_x_ + (log_target_ - last_log_count_) / slope_;
+        const double dl = std::ldexp(log_lo_count_ - log_target_, -std::max(0, lo_kept_ - 1));
+        const double dh = std::ldexp(log_target_ - log_hi_count_, -std::max(0, hi_kept_ - 1));
+        const double f = dl + dh > 0 ? dl / (dl + dh) : 0.5;
+        return lo_ + (hi_ - lo_) * (f > 0.02 && f < 0.98 ? f : 0.5);
+    }
+
+private:
+    double lo_, hi_, log_target_;
+    std::size_t target_;
+    double default_slope_, slope_;
+    double log_lo_count_ = 0.0, log_hi_count_ = 0.0, last_x_ = 0.0, last_log_count_ = 0.0;
+    bool lo_measured_ = false, hi_measured_ = false;
+    int lo_kept_ = 0, hi_kept_ = 0;  // measurements in a row the end has stayed where it was
+    int measured_ = 0;
+};
+
+}  // namespace
+
 Clustering IncrementalClustering(std::span<const Vec3f> points, const SimplifyOptions& options,
                                  ProgressTracker& progress) {
     const std::size_t n = points.size();
@@ -789,64 +855,34 @@ Clustering IncrementalClustering(std::span<const Vec3f> points, const SimplifyOp
         if (c.count >= options.target && c.count < best.count) best = std::move(c);
     };
     // The count goes about as n / n_max (the clusters grow to n_max nearly always). The search
-    // finds the largest n_max in [1, 4 mean + 2) whose count is at least the target, as the
-    // bisection before it did (where the count falls with n_max, the same n_max and so the same
-    // clustering), in fewer passes: the first guess is the mean cluster size n / target, then,
-    // while only one side of the target has been measured, each step follows the slope through
-    // the last two (-1 before there are two), then regula falsi (Illinois) on log count against
-    // log n_max between the nearest sizes measured on either side; a guess on an end takes its
-    // neighbour inside (or, below the sizes measured at or above the target, twice the largest),
-    // and after 8 passes the search bisects. Session 16: the bisection's 6-9
-    // region growings were ~60 % of the method's CPU on the merged scans; this takes 2-3 there.
+    // (LogCountSearch, slope -1, from the mean cluster size n / target) finds the largest n_max in
+    // [1, 4 mean + 2) whose count is at least the target, as the bisection before it did (where
+    // the count falls with n_max, the same n_max and so the same clustering), in fewer passes. A
+    // guess on an end takes its neighbour inside (or, below the sizes measured at or above the
+    // target, twice the largest), and after 8 passes the search bisects. Session 16: the
+    // bisection's 6-9 region growings were ~60 % of the method's CPU on the merged scans; this
+    // takes 2-3 there.
     constexpr int kSteps = 24;
-    const double log_target = std::log(static_cast<double>(options.target));
     std::size_t lo = 1, hi = static_cast<std::size_t>(4.0 * mean) + 2;
-    double log_lo = 0.0, log_hi = 0.0, last_size = 0.0, last_count = 0.0;
-    bool lo_measured = false, hi_measured = false;
-    int lo_kept = 0, hi_kept = 0;  // steps in a row the end has stayed where it was
+    LogCountSearch search(std::log(static_cast<double>(lo)), std::log(static_cast<double>(hi)), options.target, -1.0);
     std::size_t mid = std::clamp<std::size_t>(static_cast<std::size_t>(std::llround(mean)), lo + 1,
                                               std::max(lo + 1, hi - 1));
     for (int s = 0; s < kSteps && lo + 1 < hi; ++s) {
         Clustering c = GrowClusters(points, graph, {mid, sigma_max}, options.seed);
-        const double log_size = std::log(static_cast<double>(mid));
-        const double log_count = std::log(std::max<double>(1.0, static_cast<double>(c.count)));
+        search.Measure(std::log(static_cast<double>(mid)), c.count);
         if (c.count >= options.target) {
             lo = mid;
-            log_lo = log_count;
-            lo_measured = true;
-            ++hi_kept;
-            lo_kept = 0;
             consider(std::move(c));
         } else {
             hi = mid;
-            log_hi = log_count;
-            hi_measured = true;
-            ++lo_kept;
-            hi_kept = 0;
         }
         progress.Advance(0.8 / kSteps);
         if (lo + 1 >= hi) break;
-        double guess;
-        if (lo_measured != hi_measured) {
-            double slope = -1.0;
-            if (s > 0 && log_size != last_size && log_count != last_count)
-                slope = std::min(-0.05, (log_count - last_count) / (log_size - last_size));
-            guess = log_size + (log_target - log_count) / slope;
-        } else {
-            const double dl = std::ldexp(log_lo - log_target, -std::max(0, lo_kept - 1));
-            const double dh = std::ldexp(log_target - log_hi, -std::max(0, hi_kept - 1));
-            double f = dl + dh > 0 ? dl / (dl + dh) : 0.5;
-            if (!(f > 0.02 && f < 0.98)) f = 0.5;  // a count at the target: no slope to follow
-            const double a = std::log(static_cast<double>(lo)), b = std::log(static_cast<double>(hi));
-            guess = a + (b - a) * f;
-        }
-        last_size = log_size;
-        last_count = log_count;
-        std::size_t next = static_cast<std::size_t>(std::llround(std::exp(std::clamp(guess, -1.0, 60.0))));
+        std::size_t next = static_cast<std::size_t>(std::llround(std::exp(std::clamp(search.Next(), -1.0, 60.0))));
         // Measured only at or above the target and told to stay (a count flat at the target, as
         // for the few largest clusters): twice as large. Otherwise a guess on an end takes its
         // neighbour inside.
-        if (lo_measured && !hi_measured && next <= lo) next = 2 * lo;
+        if (search.OnlyAtLeast() && next <= lo) next = 2 * lo;
         next = std::clamp(next, lo + 1, hi - 1);
         if (s >= 8) next = (lo + hi) / 2;
         mid = next;
@@ -918,63 +954,28 @@ Clustering VoxelClustering(std::span<const Vec3f> points, const SimplifyOptions&
     const double min_cell = diag / 1.0e6;
     const std::size_t target = options.target;
     if (target == 0) throw Error(ErrorCode::kInvalidArgument, "voxel simplification needs --target");
-    // The smallest count not below the target, searched on log(cell size). A surface's count
-    // goes about as cell^-2: the first size is the one where a surface as wide as the box's
-    // diagonal would hold the target, and while only one side of the target has been measured
-    // each step moves by that slope; then each step interpolates log(count) against log(cell)
-    // between the nearest sizes measured to give at least and fewer than the target (regula
-    // falsi, Illinois variant), bisecting when that lands near either end. The count is not
-    // monotone in the size near the target (the cells' alignment moves it by a few tenths of a
-    // per cent), so the search stops within 0.25 % above the target or once the two sizes agree
-    // to 0.1 %, and keeps the smallest count it saw at or above the target; AdjustCount merges
-    // the rest. Session 16: plain bisection took about 15 passes over the points, up to 41
-    // (about half the voxel method's time on the merged scans).
-    const double log_target = std::log(static_cast<double>(target));
+    // The smallest count not below the target, searched on the cell size (LogCountSearch: a
+    // surface's count goes about as cell^-2), from the size where a surface as wide as the box's
+    // diagonal would hold the target; a guess outside the bracket takes its middle. The count is
+    // not monotone in the size near the target (the cells' alignment moves it by a few tenths of
+    // a per cent), so the search stops within 0.25 % above the target or once the two sizes
+    // agree to 0.1 %, and keeps the smallest count it saw at or above the target; AdjustCount
+    // merges the rest. Session 16: plain bisection took about 15 passes over the points, up to
+    // 41 (about half the voxel method's time on the merged scans); this takes 2-8.
     constexpr double kSettled = 1e-3;  // sizes 0.1 % apart: the count moves by the cells' alignment
-    double lo = std::log(min_cell), hi = std::log(diag * 2.0);
-    double log_lo_count = 0.0, log_hi_count = 0.0;
-    bool lo_measured = false, hi_measured = false;
-    int lo_kept = 0, hi_kept = 0;  // Illinois: steps in a row the end has stayed where it was
-    double last_cell = 0.0, last_count = 0.0;  // the size and count measured before
+    LogCountSearch search(std::log(min_cell), std::log(diag * 2.0), target, -2.0);
     Clustering best;
     best.count = std::numeric_limits<std::size_t>::max();
-    double next = std::clamp(std::log(diag / std::sqrt(static_cast<double>(target))), lo, hi);
-    for (int s = 0; s < 40 && hi - lo > kSettled; ++s) {
+    double next = std::clamp(std::log(diag / std::sqrt(static_cast<double>(target))), search.lo(), search.hi());
+    for (int s = 0; s < 40 && search.hi() - search.lo() > kSettled; ++s) {
         Clustering c = VoxelLabels(points, box.min, std::exp(next));
-        const double log_count = std::log(std::max<double>(1.0, static_cast<double>(c.count)));
+        search.Measure(next, c.count);
         if (c.count >= target) {
-            lo = next;
-            log_lo_count = log_count;
-            lo_measured = true;
             if (c.count < best.count) best = std::move(c);
             if (best.count <= target + target / 400) break;
-            ++hi_kept;
-            lo_kept = 0;
-        } else {
-            hi = next;
-            log_hi_count = log_count;
-            hi_measured = true;
-            ++lo_kept;
-            hi_kept = 0;
         }
-        if (lo_measured != hi_measured) {
-            // One side: the slope through the last two sizes (the surface's -2 before there are
-            // two; a cloud near its point count flattens it).
-            double slope = -2.0;
-            if (s > 0 && next != last_cell && log_count != last_count)
-                slope = std::min(-0.05, (log_count - last_count) / (next - last_cell));
-            last_cell = next;
-            last_count = log_count;
-            next += (log_target - log_count) / slope;
-            if (!(next > lo && next < hi)) next = 0.5 * (lo + hi);
-        } else {
-            // An end that stays again has its distance to the target halved each time (Illinois),
-            // so that a one-sided approach still closes in.
-            const double dl = std::ldexp(log_lo_count - log_target, -std::max(0, lo_kept - 1));
-            const double dh = std::ldexp(log_target - log_hi_count, -std::max(0, hi_kept - 1));
-            const double f = dl + dh > 0 ? dl / (dl + dh) : 0.5;
-            next = lo + (hi - lo) * (f > 0.02 && f < 0.98 ? f : 0.5);
-        }
+        next = search.Next();
+        if (!(next > search.lo() && next < search.hi())) next = 0.5 * (search.lo() + search.hi());
         progress.Advance(0.02);
     }
     if (best.count == std::numeric_limits<std::size_t>::max()) best = VoxelLabels(points, box.min, min_cell);
