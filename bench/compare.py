@@ -237,8 +237,10 @@ def main():
         json.dump(rows, open(a.json, "w"), indent=1)
     uname = os.uname()
     lines = [f"# Benchmark results ({datetime.date.today()}, {os.cpu_count()} cores, {uname.sysname} "
-             f"{uname.release})", "", f"Produced by `bench/compare.py --bin {a.bin}`" +
-             (f" --filter '{a.filter}'" if a.filter else "") + "; wall-clock times; benchmarks under 3 s: the median of 5 runs, "
+             f"{uname.release})", "", (f"Tables written by `bench/compare.py --from-json {a.from_json}` from an "
+                                       "earlier run's rows" if a.from_json else
+                                       f"Produced by `bench/compare.py --bin {a.bin}`" +
+                                       (f" --filter '{a.filter}'" if a.filter else "")) + "; wall-clock times; benchmarks under 3 s: the median of 5 runs, "
              "each run beside the peers' runs of the same task (interleaved rounds).", ""]
     lines += core_section(rows) + render_section(rows) + simplify_section(rows)
     text = "\n".join(lines) + "\n"
