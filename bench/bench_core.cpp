@@ -77,9 +77,11 @@ void Mls(benchmark::State& state, const std::string& d, float cutoff) {
 }
 
 void SimplifyWith(benchmark::State& state, const std::string& d, SimplifyMethod m, int percent, bool adaptive,
-                  bool positions_only = false, std::size_t target = 0) {
+                  bool positions_only = false, std::size_t target = 0,
+                  SimplifyRepresentative representative = SimplifyRepresentative::kCentroid) {
     SimplifyOptions o;
     o.positions_only = positions_only;
+    o.representative = representative;
     o.method = m;
     const PointCloud& input = Dataset(d);  // read before the timed loop
     o.target = target ? target : Target(d, percent);
@@ -145,6 +147,16 @@ void RenderBench(benchmark::State& state, const std::string& d, const Camera& ca
                      const bool merged = d == "bunny_scans_merged";
                      const std::size_t count = pct == 1 ? (merged ? 3627 : 2431) : (merged ? 36122 : 24550);
                      SimplifyWith(s, d, SimplifyMethod::kHierarchical, pct, false, true, count);
+                 }, 1);
+    // The same with CGAL's representative, each cluster's member nearest its centroid
+    // (--representative member): the same kind of output as CGAL's, a subset of the input.
+    for (int pct : {1, 10})
+        Register("simplify_hierarchical-members-cgal-count_" + std::to_string(pct) + "pct", SimplifyDatasets(),
+                 [pct](benchmark::State& s, const std::string& d) {
+                     const bool merged = d == "bunny_scans_merged";
+                     const std::size_t count = pct == 1 ? (merged ? 3627 : 2431) : (merged ? 36122 : 24550);
+                     SimplifyWith(s, d, SimplifyMethod::kHierarchical, pct, false, true, count,
+                                  SimplifyRepresentative::kMember);
                  }, 1);
     Register("render_paper_320x250", {"bunny"},
              [](benchmark::State& s, const std::string& d) { RenderBench(s, d, PaperCamera()); });

@@ -195,7 +195,9 @@ def simplify_section(rows):
              "`vs surfel` divides by Surfel's time for the same kind of method (voxel for the grids, "
              "particle for WLOP; for CGAL's hierarchy, Surfel's hierarchical clustering with positions only "
              "at CGAL's count, `hierarchical-positions-cgal-count`, what CGAL returns: `hierarchical` also "
-             "estimates and orients the output's normals and gives each point a radius).", ""]
+             "estimates and orients the output's normals and gives each point a radius; "
+             "`hierarchical-members-cgal-count` is the same with `--representative member`, CGAL's own "
+             "representative, the member nearest each centroid).", ""]
     sel = [r for r in rows if r["task"].startswith("simplify_")]
     for key in sorted({(r["dataset"], r["task"].rsplit("_", 1)[1]) for r in sel}):
         dataset, pct = key

@@ -11,7 +11,8 @@ namespace {
 // Defaults come from a default-constructed SimplifyOptions, ranges from core's named limits.
 struct SimplifyArgs {
     SimplifyOptions defaults;
-    std::string input, output, method = SimplifyMethodName(defaults.method);
+    std::string input, output, method = SimplifyMethodName(defaults.method),
+                               representative = SimplifyRepresentativeName(defaults.representative);
     std::uint64_t target = 0, seed = defaults.seed, max_size = defaults.max_cluster_size;
     double error = 0, max_variation = defaults.max_variation;
     bool adaptive = defaults.adaptive, no_error = !defaults.measure_error, ascii = false;
@@ -30,6 +31,8 @@ void RunSimplify(SimplifyArgs& a) {
     v1::JobSpec spec;
     v1::SimplifyJob& s = *spec.mutable_simplify();
     s.set_method(ParseProtoEnum("--method", a.method, &v1::SimplifyJob::Method_Parse));
+    s.set_representative(
+        ParseProtoEnum("--representative", a.representative, &v1::SimplifyJob::Representative_Parse));
     s.set_target(a.target);
     s.set_error(a.error);
     s.set_adaptive(a.adaptive);
@@ -58,6 +61,12 @@ void RegisterSimplifyCommands(CLI::App& app) {
                     "Error bound in model units instead of a count (iterative: RMS distance to the tangent planes; "
                     "hierarchical: distance of a cluster's points from its plane)")
         ->check(CLI::PositiveNumber);
+    sub->add_option("--representative", a->representative,
+                    "centroid: each cluster's centroid on its fitted surface, normals and colours averaged (the "
+                    "notes' rule); member: the input point nearest it, every attribute unchanged, so the output "
+                    "is a subset of the input (not for particle)")
+        ->capture_default_str()
+        ->check(CLI::IsMember({"centroid", "member"}));
     sub->add_flag("--adaptive", a->adaptive, "Curvature-adaptive: more points where the surface bends");
     sub->add_option("--max-variation", a->max_variation, "sigma_max: largest surface variation of a cluster in adaptive clustering")
         ->capture_default_str()
@@ -77,7 +86,8 @@ void RegisterSimplifyCommands(CLI::App& app) {
         "Examples:\n"
         "  surfel simplify bunny.ply -o bunny_1k.ply --method hierarchical --target 1000\n"
         "  surfel simplify scan.ply -o scan_s.ply --method iterative --error 0.0005 --json\n"
-        "  surfel simplify scan.ply -o scan_p.ply --method particle --target 5000 --adaptive");
+        "  surfel simplify scan.ply -o scan_p.ply --method particle --target 5000 --adaptive\n"
+        "  surfel simplify scan.ply -o scan_subset.ply --target 5000 --representative member");
     sub->callback([a] { RunSimplify(*a); });
 }
 

@@ -438,9 +438,16 @@ function reportSummary(kind, result) {
   return "";
 }
 
+// Particle simulation places its own points: a member representative is off for it.
+$("method").addEventListener("change", () => {
+  $("representative").disabled = $("method").value === "PARTICLE";
+});
+
 $("simplify-form").addEventListener("submit", (ev) => {
   ev.preventDefault();
-  cloudJob("simplify", { cloudId: state.cloud.id, method: $("method").value, target: String(+$("target").value) });
+  const spec = { cloudId: state.cloud.id, method: $("method").value, target: String(+$("target").value) };
+  if (!$("representative").disabled) spec.representative = $("representative").value;
+  cloudJob("simplify", spec);
 });
 
 // mls keeps the input's points (it takes neither a count nor a spacing): the fields are off for it.

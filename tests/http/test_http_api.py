@@ -224,6 +224,21 @@ def simplify_result(c):
     r = request("GET", f"{c.base}/v1/jobs/{job_id}/result")
     assert r.status == 200 and r.headers["Content-Type"] == "application/ply" and r.body.startswith(b"ply"), r.headers
     assert re.search(r'attachment; filename="simplify-.*\.ply"', r.headers["Content-Disposition"]), r.headers
+    # The member representative through the JSON API: its report names it, and a particle job
+    # that asks for it is refused with the field.
+    r = post_json(c.base + "/v1/jobs", {"simplify": {"cloudId": c.cloud["id"], "method": "VOXEL", "target": 200,
+                                                     "representative": "MEMBER"}})
+    assert r.status == 200, r.body
+    job_id = r.json()["id"]
+    with urllib.request.urlopen(f"{c.base}/v1/jobs/{job_id}/events", timeout=60) as resp:
+        last = [e for e in sse_events(resp) if e[0] != "comment"][-1][1]
+    assert "finished" in last, last
+    job = request("GET", f"{c.base}/v1/jobs/{job_id}").json()
+    assert job["state"] == "SUCCEEDED", job
+    assert json.loads(job["result"]["reportJson"])["representative"] == "member", job
+    bad = post_json(c.base + "/v1/jobs", {"simplify": {"cloudId": c.cloud["id"], "method": "PARTICLE", "target": 200,
+                                                       "representative": "MEMBER"}})
+    expect_status(bad, 400, 3, "simplify.representative")
 
 
 @step

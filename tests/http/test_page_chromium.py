@@ -171,8 +171,13 @@ def main():
         print(f"ok  render: {size[0]}x{size[1]} image, {lit} non-background pixels, eye {eye} "
               f"({time.monotonic() - t0:.1f} s)")
 
-        # Simplify: the result replaces the preview and can be downloaded.
+        # Simplify: the result replaces the preview and can be downloaded. The representative is
+        # off for particle simulation, on again for the others.
+        Select(driver.find_element(By.ID, "method")).select_by_visible_text("PARTICLE")
+        assert not driver.find_element(By.ID, "representative").is_enabled()
         Select(driver.find_element(By.ID, "method")).select_by_visible_text("VOXEL")
+        assert driver.find_element(By.ID, "representative").is_enabled()
+        Select(driver.find_element(By.ID, "representative")).select_by_visible_text("MEMBER")
         target = driver.find_element(By.ID, "target")
         target.clear()
         target.send_keys("500")

@@ -42,6 +42,20 @@ std::optional<SimplifyMethod> ParseSimplifyMethod(std::string_view name) {
     return std::nullopt;
 }
 
+const char* SimplifyRepresentativeName(SimplifyRepresentative representative) {
+    switch (representative) {
+        case SimplifyRepresentative::kCentroid: return "centroid";
+        case SimplifyRepresentative::kMember: return "member";
+    }
+    return "?";
+}
+
+std::optional<SimplifyRepresentative> ParseSimplifyRepresentative(std::string_view name) {
+    for (SimplifyRepresentative r : {SimplifyRepresentative::kCentroid, SimplifyRepresentative::kMember})
+        if (name == SimplifyRepresentativeName(r)) return r;
+    return std::nullopt;
+}
+
 // Validation: one check per field in the order of the job spec, then the combinations.
 void SimplifyOptions::Validate() const {
     if (std::find(kSimplifyMethods.begin(), kSimplifyMethods.end(), method) == kSimplifyMethods.end())
@@ -56,6 +70,12 @@ void SimplifyOptions::Validate() const {
     CheckRange("max_cluster_size", static_cast<double>(max_cluster_size), 1.0, static_cast<double>(kMaxMaxClusterSize));
     CheckRange("neighbors", neighbors, kMinNeighbors, kMaxNeighbors);
     CheckRange("particle_iterations", particle_iterations, 0, kMaxParticleIterations);
+    if (representative != SimplifyRepresentative::kCentroid && representative != SimplifyRepresentative::kMember)
+        InvalidField("representative", "unknown representative " + std::to_string(static_cast<int>(representative)));
+    if (representative == SimplifyRepresentative::kMember && method == SimplifyMethod::kParticle)
+        InvalidField("representative",
+                     "particle simulation places its own points; member is for hierarchical, incremental, "
+                     "iterative and voxel");
 }
 
 double PeakResidentMiB() {
@@ -160,6 +180,37 @@ void RepresentativesOnSurface(std::span<const Vec3f> points, const Clustering& c
             }
         }
     });
+}
+
+std::vector<std::uint32_t> NearestMembers(std::span<const Vec3f> points, const Clustering& clusters,
+                                          std::span<const Vec3f> near) {
+    const std::size_t n = points.size(), m = clusters.count;
+    SURFEL_CHECK(clusters.label.size() == n);
+    SURFEL_CHECK(near.empty() || near.size() == m);
+    // The plain centroids where no points are given: the members' positions in double, in input order.
+    std::vector<Vec3d> target(m, Vec3d::Zero());
+    if (near.empty()) {
+        std::vector<std::uint32_t> count(m, 0);
+        for (std::size_t i = 0; i < n; ++i) {
+            target[clusters.label[i]] += points[i].cast<double>();
+            ++count[clusters.label[i]];
+        }
+        for (std::size_t c = 0; c < m; ++c) target[c] /= std::max(1u, count[c]);
+    } else {
+        for (std::size_t c = 0; c < m; ++c) target[c] = near[c].cast<double>();
+    }
+    constexpr std::uint32_t kNone = std::numeric_limits<std::uint32_t>::max();
+    std::vector<std::uint32_t> member(m, kNone);
+    std::vector<double> best(m, std::numeric_limits<double>::infinity());
+    for (std::size_t i = 0; i < n; ++i) {  // the first in input order wins a tie
+        const std::uint32_t c = clusters.label[i];
+        const double d2 = (points[i].cast<double>() - target[c]).squaredNorm();
+        if (d2 < best[c] || member[c] == kNone) best[c] = d2, member[c] = static_cast<std::uint32_t>(i);
+    }
+    for (std::size_t c = 0; c < m; ++c)
+        if (member[c] == kNone)
+            throw Error(ErrorCode::kInternal, "simplify: output point " + std::to_string(c) + " has no member");
+    return member;
 }
 
 PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> normals, const Clustering& clusters,
@@ -318,6 +369,7 @@ SimplifyResult Simplify(const PointCloud& input, const SimplifyOptions& options,
     SimplifyResult result;
     SimplifyReport& report = result.report;
     report.method = method;
+    report.representative = SimplifyRepresentativeName(options.representative);
     report.adaptive = options.adaptive;
     report.input_points = n;
 
@@ -461,12 +513,28 @@ SimplifyResult Simplify(const PointCloud& input, const SimplifyOptions& options,
         }
     }
     tracker.Check();
+    // A subset of the input: each cluster's member nearest the point it would have given.
+    std::vector<std::uint32_t> members;
+    if (options.representative == SimplifyRepresentative::kMember) {
+        members = NearestMembers(input.positions, clusters, positions);
+        positions.resize(members.size());
+        for (std::size_t c = 0; c < members.size(); ++c) positions[c] = input.positions[members[c]];
+    }
     // Estimated (unoriented) input normals reach the output through the clusters' own normals.
     const bool unoriented =
         report.normals_estimated && (options.method == SimplifyMethod::kIterative ||
                                      options.method == SimplifyMethod::kParticle);
     result.cloud = BuildFromClusters(input, unoriented ? std::span<const Vec3f>{} : std::span<const Vec3f>(normals),
                                      clusters, positions, options.positions_only, input_tree.get());
+    if (!members.empty() && !options.positions_only) {
+        // The members' own attributes, unchanged (BuildFromClusters averaged them): a given
+        // normal and a colour. Estimated normals stay the clusters' own, oriented over the output.
+        PointCloud& out = result.cloud;
+        for (std::size_t c = 0; c < members.size(); ++c) {
+            if (!input.normals.empty()) out.normals[c] = input.normals[members[c]];
+            if (input.has_colors()) out.colors[c] = input.colors[members[c]];
+        }
+    }
     if (!particle_normals.empty() && !options.positions_only &&
         (!report.normals_estimated || result.cloud.size() < 3)) {
         result.cloud.normals = particle_normals;  // the MLS normals at the projected positions

@@ -37,6 +37,24 @@ inline constexpr std::array<SimplifyMethod, 5> kSimplifyMethods = {
     SimplifyMethod::kHierarchical, SimplifyMethod::kIncremental, SimplifyMethod::kIterative,
     SimplifyMethod::kParticle, SimplifyMethod::kVoxel};
 
+/// What stands for a cluster (or a contracted set) in the output.
+enum class SimplifyRepresentative {
+    /// The notes' rule (eq. 2.1): the cluster's centroid, lifted onto the cluster's fitted
+    /// surface (BuildFromClusters); iterative: the contracted point; normals and colours averaged
+    /// over the members. A resampling: no output point need be an input point.
+    kCentroid,
+    /// A subset of the input: the member nearest the point kCentroid would output (for the
+    /// clustering methods the plain centroid, CGAL's `hierarchy_simplify_point_set` rule; for
+    /// iterative the contracted point). Its position, colour and given normal are kept
+    /// unchanged; only the splat radius is added. Not for particle simulation, whose points are
+    /// not tied to members.
+    kMember,
+};
+/// "centroid", "member".
+const char* SimplifyRepresentativeName(SimplifyRepresentative representative);
+/// Parses a representative name; nullopt when unknown.
+std::optional<SimplifyRepresentative> ParseSimplifyRepresentative(std::string_view name);
+
 /// Limits of SimplifyOptions, written once here; the CLI, the worker and the docs read them.
 /// Smallest sigma_max (notes 2.1: surface variation sigma_n = lambda_0 / (lambda_0 + lambda_1 + lambda_2)).
 inline constexpr double kMinMaxVariation = 1e-12;
@@ -74,6 +92,9 @@ struct SimplifyOptions {
     /// n_max, the largest cluster of clustering without a target (hierarchical, incremental),
     /// 1..kMaxMaxClusterSize.
     std::size_t max_cluster_size = 10;
+    /// What stands for a cluster: its (lifted) centroid, as the notes prescribe, or its member
+    /// nearest that point, so that the output is a subset of the input (not for particle).
+    SimplifyRepresentative representative = SimplifyRepresentative::kCentroid;
     /// Seeds (incremental) and the initial spreading (particle); every value is valid.
     std::uint64_t seed = 1;
     /// k of the neighbour graph (incremental growth, iterative pairs), kMinNeighbors..kMaxNeighbors.
@@ -89,9 +110,10 @@ struct SimplifyOptions {
 
     /// Throws Error(kInvalidArgument, "<field>: <what>") for the first bad field, named as in
     /// the job spec (proto SimplifyJob): "method", "target", "error", "max_variation",
-    /// "max_cluster_size", "neighbors", "particle_iterations"; ranges read "must lie in LO..HI,
-    /// got V". Combinations: "target: give target or error, not both", "error: this method
-    /// takes a target, not an error bound", "target: is required for this method". Options
+    /// "max_cluster_size", "neighbors", "particle_iterations", "representative"; ranges read
+    /// "must lie in LO..HI, got V". Combinations: "target: give target or error, not both", "error:
+    /// this method takes a target, not an error bound", "target: is required for this method",
+    /// "representative: particle simulation places its own points; ...". Options
     /// only: a target above the input's size is checked by Simplify().
     void Validate() const;
 };
@@ -99,6 +121,7 @@ struct SimplifyOptions {
 /// The quality report of one simplification.
 struct SimplifyReport {
     std::string method;
+    std::string representative;  ///< SimplifyRepresentativeName of the options' representative.
     bool adaptive = false;
     std::size_t input_points = 0;
     std::size_t output_points = 0;
@@ -140,6 +163,12 @@ struct Clustering {
 PointCloud BuildFromClusters(const PointCloud& input, std::span<const Vec3f> normals, const Clustering& clusters,
                              std::span<const Vec3f> positions = {}, bool positions_only = false,
                              const KdTree* input_tree = nullptr);
+
+/// For each cluster c, the index of its member nearest `near[c]` (or, when `near` is empty, the
+/// cluster's centroid), the first in input order on a tie: the kMember representatives. Throws
+/// Error(kInternal) for a cluster without members.
+std::vector<std::uint32_t> NearestMembers(std::span<const Vec3f> points, const Clustering& clusters,
+                                          std::span<const Vec3f> near = {});
 
 /// Current peak resident set size of this process in MiB (Linux VmHWM), 0 when unknown.
 double PeakResidentMiB();

@@ -198,6 +198,18 @@ TEST(SimplifyJob, ValidationNamesTheField) {
     EXPECT_EQ(ValidationMessage(s), "simplify.method: unknown method 42");
     s.mutable_simplify()->set_method(v1::SimplifyJob::METHOD_UNSPECIFIED);  // = hierarchical
     EXPECT_EQ(ValidationMessage(s), "");
+    s.mutable_simplify()->set_representative(v1::SimplifyJob::MEMBER);
+    EXPECT_EQ(ValidationMessage(s), "");
+    s.mutable_simplify()->set_method(v1::SimplifyJob::PARTICLE);
+    s.mutable_simplify()->set_target(10);
+    EXPECT_EQ(ValidationMessage(s),
+              "simplify.representative: particle simulation places its own points; member is for hierarchical, "
+              "incremental, iterative and voxel");
+    s.mutable_simplify()->set_representative(static_cast<v1::SimplifyJob::Representative>(9));
+    EXPECT_EQ(ValidationMessage(s), "simplify.representative: unknown representative 9");
+    s.mutable_simplify()->clear_representative();
+    s.mutable_simplify()->clear_target();
+    s.mutable_simplify()->set_method(v1::SimplifyJob::METHOD_UNSPECIFIED);
     s.mutable_simplify()->clear_cloud_id();
     EXPECT_EQ(ValidationMessage(s), "simplify.cloud_id: is required");
 }

@@ -41,6 +41,14 @@ SimplifyOptions ToSimplifyOptions(const v1::SimplifyJob& job) {
         default:
             throw Error(ErrorCode::kInvalidArgument, "simplify.method: unknown method " + std::to_string(job.method()));
     }
+    switch (job.representative()) {
+        case v1::SimplifyJob::REPRESENTATIVE_UNSPECIFIED: o.representative = defaults.representative; break;
+        case v1::SimplifyJob::CENTROID: o.representative = SimplifyRepresentative::kCentroid; break;
+        case v1::SimplifyJob::MEMBER: o.representative = SimplifyRepresentative::kMember; break;
+        default:
+            throw Error(ErrorCode::kInvalidArgument,
+                        "simplify.representative: unknown representative " + std::to_string(job.representative()));
+    }
     o.target = job.target();
     o.error = job.error();
     o.adaptive = job.adaptive();
@@ -55,6 +63,7 @@ nlohmann::json SimplifyReportJson(const SimplifyReport& r) {
     nlohmann::json j = {{"points", r.output_points},
                         {"input_points", r.input_points},
                         {"method", r.method},
+                        {"representative", r.representative},
                         {"adaptive", r.adaptive},
                         {"time_ms", r.time_ms},
                         {"peak_rss_mb", r.peak_rss_mb},
