@@ -54,8 +54,11 @@ class UploadSession {
     void CheckFits(std::uint64_t more);
     /// Reads and hashes the committed bytes of a resumed upload (slow: up to max_upload_bytes).
     void HashCommitted();
-    /// Appends `data` to the part file (after CheckFits). Needs hashed(). kResourceExhausted:
-    /// - past limits().max_upload_inflight_bytes: the committed bytes are kept (resume later);
+    /// Appends `data` to the part file (after CheckFits). Needs hashed(). The transport counted
+    /// `data` in the in-flight total (Operations::ReserveInflight, kResourceExhausted past
+    /// limits().max_upload_inflight_bytes) before it held the bytes in memory; the session takes
+    /// that count over on entry, whatever happens, and releases it with the part file's when it
+    /// goes (stored, or the call ended). kResourceExhausted:
     /// - past the disk quota when eviction cannot make room (Retention::Reserve), or the disk is
     ///   full (ENOSPC, EDQUOT): the part file is removed, freeing its space (upload again).
     /// A chunk is never half in the part file: a short write is truncated away.
