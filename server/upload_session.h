@@ -10,8 +10,9 @@
 /// renames it into place), writeback to disk is started every few MiB while the upload goes on
 /// (sync_file_range), so that the fsync before the acknowledgement finds little left to do, and
 /// Finish parses the file from a read-only mapping (no copy) while another thread fsyncs it.
-/// The positions of a binary PLY are checked while the chunks are appended (PlyPositionScan, on
-/// the bytes just hashed): Finish then reads only the header and what follows the vertex records.
+/// The positions of a PLY (binary, or ascii with the vertices first) are checked while the chunks
+/// are appended (PlyPositionScan, on the bytes just hashed): Finish then reads only the header and
+/// what follows the vertex records.
 
 #include <cstdint>
 #include <memory>
