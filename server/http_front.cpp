@@ -304,6 +304,9 @@ struct HttpFront::Impl {
     void Upload(const Request& req, Response& res, const ContentReader& reader) {
         UploadSession session(ops, Who(req), RandomUploadId(), req.get_param_value("filename"));
         bool done = false;
+        // The bytes of `block` counted in the in-flight total, each piece before it is copied
+        // in (over the limit: RESOURCE_EXHAUSTED naming it); Append takes the count over.
+        std::uint64_t counted = 0;
         try {
             if (req.has_header("Content-Length")) {
                 session.CheckFits(
@@ -318,8 +321,11 @@ struct HttpFront::Impl {
             block.reserve(kUploadBlock);
             const bool complete = reader([&](const char* data, std::size_t n) {
                 try {
+                    ops.ReserveInflight(n, session.id());
+                    counted += n;
                     block.append(data, n);
                     if (block.size() >= kUploadBlock) {
+                        counted = 0;
                         session.Append(block);
                         block.clear();
                     }
@@ -331,7 +337,10 @@ struct HttpFront::Impl {
             });
             if (error) std::rethrow_exception(error);
             if (!complete) throw Error(ErrorCode::kInvalidArgument, "the upload body ended early");
-            if (!block.empty()) session.Append(block);
+            if (!block.empty()) {
+                counted = 0;
+                session.Append(block);
+            }
             res.headers.erase("Connection");
             auto promise = std::make_shared<std::promise<v1::Cloud>>();
             auto future = promise->get_future();
@@ -348,6 +357,7 @@ struct HttpFront::Impl {
             done = true;  // Finish removes the part file, whatever the outcome
             SendMessage(res, future.get());
         } catch (...) {
+            ops.ReleaseInflight(counted);
             if (!done) session.Discard();
             throw;
         }

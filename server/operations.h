@@ -30,8 +30,9 @@ struct ServiceLimits {
     std::size_t download_chunk_bytes = 256 << 10;  ///< Result chunks in Watch, Download and HTTP.
     std::size_t max_uploads = 64;  ///< Upload calls in progress at once; more -> RESOURCE_EXHAUSTED.
     /// Bytes received by upload calls in progress and not yet stored as clouds (their part files,
-    /// which Finish reads whole into memory to parse); a chunk past it -> RESOURCE_EXHAUSTED, the
-    /// committed bytes kept for a resume. 0 = no limit.
+    /// which Finish reads whole into memory to parse, and the chunks the transports hold on the
+    /// way there); a chunk past it -> RESOURCE_EXHAUSTED, the committed bytes kept for a resume.
+    /// 0 = no limit.
     std::uint64_t max_upload_inflight_bytes = 4ull << 30;
 };
 

@@ -218,7 +218,7 @@ int main(int argc, char** argv) {
         ->check(CLI::Range(0, 256));
     app.add_option("--upload-window-mib", f.upload_window_mib,
                    "HTTP/2 receive window of each gRPC stream in MiB (what a client may send ahead of "
-                   "the server: an upload's bytes in flight); 0 = gRPC's adaptive window, which "
+                   "the server, buffered by gRPC outside --max-upload-inflight-mb); 0 = gRPC's adaptive window, which "
                    "grows with the link's bandwidth-delay product and buffers more (issue 19.3)")
         ->default_val(8)
         ->check(CLI::Range(0.0, 1024.0));
@@ -236,13 +236,14 @@ int main(int argc, char** argv) {
         ->check(CLI::NonNegativeNumber);
     app.add_option("--max-uploads", f.max_uploads,
                    "Upload calls in progress at once (gRPC and HTTP) before another answers RESOURCE_EXHAUSTED "
-                   "(HTTP 429); each holds at most one chunk and, while parsed, its file and cloud")
+                   "(HTTP 429); each holds its chunks in flight (--max-upload-inflight-mb, docs/memory.md) "
+                   "and, while parsed, its file and cloud")
         ->default_val(64)
         ->check(CLI::Range(1, 100000));
     app.add_option("--max-upload-inflight-mb", f.max_upload_inflight_mb,
                    "MiB of uploads received and not yet stored (part files of upload calls in progress, each "
-                   "read whole to parse) before a chunk answers RESOURCE_EXHAUSTED (the bytes are kept: resume "
-                   "later); 0 = no limit")
+                   "read whole to parse, and the chunks held in memory on the way there) before a chunk "
+                   "answers RESOURCE_EXHAUSTED (the bytes are kept: resume later); 0 = no limit")
         ->default_val(4096)
         ->check(CLI::NonNegativeNumber);
     app.add_option("--max-disk-gb", f.max_disk_gb,

@@ -4,6 +4,7 @@
 
 #include <atomic>
 #include <deque>
+#include <exception>
 #include <memory>
 #include <mutex>
 #include <optional>
@@ -26,9 +27,15 @@ using worker::CurrentExceptionStatus;
 // the upload's state, appends its chunk to the part file and hashes it (UploadSession::Append).
 // So receiving the next chunk overlaps writing and hashing this one. The reader runs ahead by at
 // most kAheadBytes (and kAheadMessages) of messages received and not yet appended; then it
-// pauses, and the writer starts the next read when it has caught up. Without a writer Executor
-// (--transfer-threads 0) the writer runs inline in OnReadDone and nothing is read ahead: one chunk
-// appended, then the next read, as before the two stages.
+// pauses, and the writer starts the next read when it has caught up. Every received chunk is
+// counted in the upload bytes in flight (Operations::ReserveInflight, --max-upload-inflight-mb)
+// when the reader takes it, before it is queued and before the next read: the reader's lead is in
+// the total, and UploadSession::Append takes each chunk's count over. A chunk that would pass the
+// limit is queued as refused and no more is read; the writer appends the chunks before it and
+// then ends the call with RESOURCE_EXHAUSTED, the committed bytes kept, as a one-stage reactor
+// refuses that chunk's Append. The chunks never appended are released when the call ends.
+// Without a writer Executor (--transfer-threads 0) the writer runs inline in OnReadDone and
+// nothing is read ahead: one chunk appended, then the next read, as before the two stages.
 //
 // The writer owns the UploadSession and is the only one to end the call: an error of the message
 // it takes (a wrong write_offset, a limit, a full disk) ends the call, and the messages the reader
@@ -52,7 +59,9 @@ using worker::CurrentExceptionStatus;
 class UploadReactor final : public grpc::ServerReadReactor<v1::UploadRequest> {
   public:
     // What the reader runs ahead of the writer at most (bytes of received, unappended chunks;
-    // messages): a bounded queue per upload, beside gRPC's own HTTP/2 window.
+    // messages): a bounded queue per upload, beside gRPC's own HTTP/2 window. The buffers of
+    // appended messages kept for later reads hold at most kAheadBytes too (stale bytes, not in
+    // flight).
     static constexpr std::size_t kAheadBytes = 2u << 20;
     static constexpr std::size_t kAheadMessages = 16;
 
@@ -67,11 +76,23 @@ class UploadReactor final : public grpc::ServerReadReactor<v1::UploadRequest> {
             std::lock_guard lock(mu_);
             if (ended_) return;  // the writer ended the call; this read failed or came after
             const std::size_t bytes = ok ? request_.data().size() : 0;
-            const bool last = !ok || request_.finish_write();
-            queue_.push_back(Received{ok, std::move(request_)});
+            bool last = !ok || request_.finish_write();
+            std::exception_ptr refused;
+            if (bytes > 0) {
+                if (reader_id_.empty()) reader_id_ = request_.upload_id();
+                try {
+                    service_.ops().ReserveInflight(bytes, reader_id_);
+                    reserved_ += bytes;
+                } catch (...) {  // past --max-upload-inflight-mb: the writer refuses it
+                    refused = std::current_exception();
+                    last = true;
+                }
+            }
+            queue_.push_back(Received{ok, std::move(request_), refused});
             if (!spare_.empty()) {  // reuse a message's buffer (its capacity): no allocation per chunk
                 request_ = std::move(spare_.back());
                 spare_.pop_back();
+                spare_capacity_ -= request_.data().capacity();
             }
             pending_bytes_ += bytes;
             ++pending_messages_;
@@ -95,13 +116,25 @@ class UploadReactor final : public grpc::ServerReadReactor<v1::UploadRequest> {
     struct Received {
         bool ok = false;  // false: the read failed (the stream ended without finish_write)
         v1::UploadRequest request;
+        std::exception_ptr refused;  // not counted in flight: ReserveInflight's error
     };
     using Task = void (UploadReactor::*)();
 
-    // Under mu_: whether the reader may start another read now.
+    // Under mu_: whether the reader may start another read now. Nothing is read ahead before the
+    // session is open: a resumed upload's committed bytes are counted in flight first, as when
+    // each chunk is appended before the next is read.
     bool RoomLocked() const {
         if (pending_messages_ == 0) return true;
-        return writers_ != nullptr && pending_bytes_ < kAheadBytes && pending_messages_ < kAheadMessages;
+        return writers_ != nullptr && opened_ && pending_bytes_ < kAheadBytes &&
+               pending_messages_ < kAheadMessages;
+    }
+
+    // Under mu_: a paused reader reads again when there is room.
+    void ResumeReaderLocked() {
+        if (paused_ && RoomLocked()) {
+            paused_ = false;
+            StartRead(&request_);
+        }
     }
 
     std::string Id() const { return session_ ? session_->id() : upload_id_; }
@@ -140,6 +173,10 @@ class UploadReactor final : public grpc::ServerReadReactor<v1::UploadRequest> {
                     "upload " + Id() + " incomplete: " + (session_ ? session_->ResumeHint() : "")));
                 return;
             }
+            if (m.refused) {
+                Refuse(m);
+                return;
+            }
             if (!Take(m.request)) return;
             Appended(std::move(m.request));
         }
@@ -150,11 +187,7 @@ class UploadReactor final : public grpc::ServerReadReactor<v1::UploadRequest> {
     // then current_ holds the message, moved out of `request`).
     bool Take(v1::UploadRequest& request) {
         try {
-            if (!session_) {
-                upload_id_ = request.upload_id();
-                session_ = std::make_unique<UploadSession>(service_.ops(), caller_, request.upload_id(),
-                                                           request.filename());
-            }
+            Open(request);
             CheckChunk(request);
         } catch (...) {
             Done(CurrentExceptionStatus());
@@ -166,6 +199,29 @@ class UploadReactor final : public grpc::ServerReadReactor<v1::UploadRequest> {
             return false;
         }
         return Accept(request, false);
+    }
+
+    // Ends the call at a message the reader could not count in flight: with the error a one-stage
+    // reactor gives that message (its checks first, then the in-flight limit at its Append).
+    void Refuse(const Received& m) {
+        try {
+            Open(m.request);
+            CheckChunk(m.request);
+            std::rethrow_exception(m.refused);
+        } catch (...) {
+            Done(CurrentExceptionStatus());
+        }
+    }
+
+    // Opens the session at the call's first message.
+    void Open(const v1::UploadRequest& request) {
+        if (session_) return;
+        upload_id_ = request.upload_id();
+        session_ = std::make_unique<UploadSession>(service_.ops(), caller_, request.upload_id(),
+                                                   request.filename());
+        std::lock_guard lock(mu_);
+        opened_ = true;
+        ResumeReaderLocked();
     }
 
     // Checks a message against the upload's state (cheap: a refused resume is answered before
@@ -189,6 +245,10 @@ class UploadReactor final : public grpc::ServerReadReactor<v1::UploadRequest> {
     // Appends the message's chunk (a bounded write: the page cache absorbs it). After the final
     // message, ingests (here when on the ingest Executor already) and returns false.
     bool Accept(const v1::UploadRequest& request, bool on_executor) {
+        {
+            std::lock_guard lock(mu_);
+            reserved_ -= request.data().size();  // Append takes the count over
+        }
         try {
             session_->Append(request.data());
         } catch (...) {
@@ -209,11 +269,12 @@ class UploadReactor final : public grpc::ServerReadReactor<v1::UploadRequest> {
         std::lock_guard lock(mu_);
         pending_bytes_ -= request.data().size();
         --pending_messages_;
-        if (spare_.size() < kAheadMessages) spare_.push_back(std::move(request));
-        if (paused_ && RoomLocked()) {
-            paused_ = false;
-            StartRead(&request_);
+        const std::size_t capacity = request.data().capacity();
+        if (spare_.size() < kAheadMessages && spare_capacity_ + capacity <= kAheadBytes) {
+            spare_capacity_ += capacity;
+            spare_.push_back(std::move(request));
         }
+        ResumeReaderLocked();
     }
 
     // Hands the writer's turn to the ingest executor; a full queue ends the call, the committed
@@ -269,11 +330,15 @@ class UploadReactor final : public grpc::ServerReadReactor<v1::UploadRequest> {
     // Ends the call: once, by the writer's turn, and nothing may touch `this` after Finish.
     void Done(const grpc::Status& status) {
         const std::string id = Id();
+        std::uint64_t unappended = 0;
         {
             std::lock_guard lock(mu_);
             ended_ = true;
             queue_.clear();  // received after the end: never appended
+            unappended = reserved_;
+            reserved_ = 0;
         }
+        service_.ops().ReleaseInflight(unappended);
         session_.reset();  // releases the claim
         if (!status.ok()) {
             const std::string& message = status.error_message();
@@ -297,9 +362,13 @@ class UploadReactor final : public grpc::ServerReadReactor<v1::UploadRequest> {
     std::mutex mu_;  // guards what follows, between the reader and the writer
     std::deque<Received> queue_;
     std::vector<v1::UploadRequest> spare_;  // appended messages, their buffers kept for reads
+    std::size_t spare_capacity_ = 0;         // of spare_'s chunks, at most kAheadBytes
     std::size_t pending_bytes_ = 0;          // chunks received and not yet appended
+    std::uint64_t reserved_ = 0;             // of those, counted in flight and not yet appended
+    std::string reader_id_;                  // the first message's upload_id (the reader's)
     std::size_t pending_messages_ = 0;
     bool paused_ = false;         // no read outstanding: the reader waits for the writer
+    bool opened_ = false;         // the writer opened the session (it may be read ahead of)
     bool writer_active_ = false;  // the writer's turn is taken (a task queued or running)
     bool ended_ = false;          // Finish was called (or is about to be)
 

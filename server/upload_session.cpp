@@ -193,12 +193,11 @@ void UploadSession::HashCommitted() {
 }
 
 void UploadSession::Append(std::string_view data) {
+    inflight_ += data.size();  // the transport's count, ours now
     SURFEL_CHECK(hashed_, "Append before HashCommitted on upload " << id_);
     CheckFits(data.size());
     SURFEL_CHECK(fd_ >= 0, "Append after Finish or Discard on upload " << id_);
     if (data.empty()) return;
-    ops_.ReserveInflight(data.size(), id_);  // over it: kept for a resume
-    inflight_ += data.size();
     worker::Retention* retention = ops_.retention();
     if (retention) {
         try {

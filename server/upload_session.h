@@ -10,8 +10,9 @@
 /// renames it into place), writeback to disk is started every few MiB while the upload goes on
 /// (sync_file_range), so that the fsync before the acknowledgement finds little left to do, and
 /// Finish parses the file from a read-only mapping (no copy) while another thread fsyncs it.
-/// The positions of a binary PLY are checked while the chunks are appended (PlyPositionScan, on
-/// the bytes just hashed): Finish then reads only the header and what follows the vertex records.
+/// The positions of a PLY (binary, or ascii with the vertices first) are checked while the chunks
+/// are appended (PlyPositionScan, on the bytes just hashed): Finish then reads only the header and
+/// what follows the vertex records.
 
 #include <cstdint>
 #include <memory>
@@ -54,8 +55,11 @@ class UploadSession {
     void CheckFits(std::uint64_t more);
     /// Reads and hashes the committed bytes of a resumed upload (slow: up to max_upload_bytes).
     void HashCommitted();
-    /// Appends `data` to the part file (after CheckFits). Needs hashed(). kResourceExhausted:
-    /// - past limits().max_upload_inflight_bytes: the committed bytes are kept (resume later);
+    /// Appends `data` to the part file (after CheckFits). Needs hashed(). The transport counted
+    /// `data` in the in-flight total (Operations::ReserveInflight, kResourceExhausted past
+    /// limits().max_upload_inflight_bytes) before it held the bytes in memory; the session takes
+    /// that count over on entry, whatever happens, and releases it with the part file's when it
+    /// goes (stored, or the call ended). kResourceExhausted:
     /// - past the disk quota when eviction cannot make room (Retention::Reserve), or the disk is
     ///   full (ENOSPC, EDQUOT): the part file is removed, freeing its space (upload again).
     /// A chunk is never half in the part file: a short write is truncated away.

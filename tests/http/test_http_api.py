@@ -9,6 +9,7 @@ import json
 import os
 import re
 import signal
+import socket
 import sys
 import threading
 import time
@@ -122,6 +123,45 @@ def upload_limits(c):
     uploads = os.path.join(c.server.work_dir, "data", "uploads")
     if os.path.isdir(uploads):
         assert os.listdir(uploads) == [], os.listdir(uploads)
+
+
+@step
+def upload_inflight_counts_the_gathered_block(c):
+    # The bytes an upload has read and gathers in memory (up to 256 KiB before they go to the part
+    # file) count in --max-upload-inflight-mb from the moment they are read, and are released
+    # when the upload ends early. Beside 200 KiB held so, 100 KiB more pass the cap of 256 KiB:
+    # whichever of the two the server reads first, the other is refused 429 naming the flag.
+    s = Server(c.server_bin, c.work_dir + "-inflight", ["--max-upload-inflight-mb", "0.25"])
+    try:
+        held = socket.create_connection(("127.0.0.1", s.http_port))
+        held.sendall(b"POST /v1/clouds?filename=held.xyz HTTP/1.1\r\nHost: x\r\n"
+                     b"Content-Length: 307200\r\n\r\n" + b"0 0 0\n" * (200 * 1024 // 6))
+        probe = sphere_ply(3500)
+        assert 60 * 1024 < len(probe) < 200 * 1024, len(probe)
+        r = request("POST", s.base + "/v1/clouds?filename=probe.ply", probe)
+        if r.status == 429:
+            expect_status(r, 429, 8, "--max-upload-inflight-mb")
+        else:  # the probe was read first: the held upload is refused when it reads past the cap
+            assert r.status == 200, (r.status, r.body)
+            held.settimeout(10)
+            answer = b""
+            try:
+                while chunk := held.recv(65536):
+                    answer += chunk
+            except socket.timeout:
+                raise AssertionError("an upload was taken beside 200 KiB held in memory and not "
+                                     "counted, and the held one was not refused either: " + repr(answer))
+            assert answer.startswith(b"HTTP/1.1 429") and b"--max-upload-inflight-mb" in answer, answer
+        held.close()  # the held upload ends early: its bytes are no longer in flight
+        deadline = time.monotonic() + 10
+        while True:
+            r = request("POST", s.base + "/v1/clouds?filename=probe.ply", probe)
+            if r.status == 200:
+                break
+            assert r.status == 429 and time.monotonic() < deadline, (r.status, r.body)
+            time.sleep(0.02)
+    finally:
+        s.stop(signal.SIGKILL)
 
 
 @step
@@ -332,6 +372,7 @@ def main():
     ap.add_argument("--work-dir", required=True)
     a = ap.parse_args()
     c = Ctx()
+    c.server_bin, c.work_dir = a.server_bin, a.work_dir
     c.n = 1500
     c.max_upload = 100 * 1024
     c.max_points = 3000

@@ -368,7 +368,6 @@ TEST_F(DiskTest, UploadBytesInFlightAreCappedAndTheHeldBytesKeptForAResume) {
     EXPECT_EQ(r.committed_size(), 200 << 10);
 }
 
-
 /// The committed size the server reports for `upload_id` (QueryUpload).
 std::int64_t Committed(v1::Surfel::Stub& stub, const std::string& upload_id) {
     v1::QueryUploadRequest q;
@@ -378,6 +377,103 @@ std::int64_t Committed(v1::Surfel::Stub& stub, const std::string& upload_id) {
     const grpc::Status s = stub.QueryUpload(&qc, q, &r);
     EXPECT_TRUE(s.ok()) << s.error_message();
     return r.committed_size();
+}
+
+/// Opens an Upload call to `id` and sends `chunks` chunks of `chunk` bytes of `fill` from
+/// `offset` on at once, without finish_write; the writer stays open.
+std::unique_ptr<grpc::ClientWriter<v1::UploadRequest>> SendChunks(
+    v1::Surfel::Stub& stub, grpc::ClientContext& ctx, v1::Cloud& response, const std::string& id,
+    std::uint64_t offset, int chunks, std::size_t chunk, char fill) {
+    auto writer = stub.Upload(&ctx, &response);
+    for (int i = 0; i < chunks; ++i) {
+        v1::UploadRequest r;
+        r.set_upload_id(id);
+        r.set_filename("x.ply");
+        r.set_write_offset(static_cast<std::int64_t>(offset + i * chunk));
+        r.set_data(std::string(chunk, fill));
+        if (!writer->Write(r)) break;  // the server ended the call
+    }
+    return writer;
+}
+
+/// One upload call of `chunks` chunks of `chunk` bytes to a new id, ended without finish_write:
+/// FAILED_PRECONDITION ("incomplete") when every chunk was taken, else why not.
+grpc::Status Probe(v1::Surfel::Stub& stub, const std::string& id, int chunks, std::size_t chunk) {
+    grpc::ClientContext ctx;
+    v1::Cloud response;
+    auto writer = SendChunks(stub, ctx, response, id, 0, chunks, chunk, 'p');
+    writer->WritesDone();
+    return writer->Finish();
+}
+
+// The gRPC reader runs up to 2 MiB ahead of the writer (--transfer-threads, bench/README.md
+// "Session 14 (upload helper)"): those chunks are held in memory and count as in flight from the
+// moment the reader takes them, not only once appended. The writer is held up long enough to look:
+// a resumed upload's committed bytes (here a sparse 1.5 GiB part file, about a second of SHA-256)
+// are hashed before its first chunk is appended, while the reader goes on reading. (A probe that
+// raced the reader would take the room first and the read-ahead would be refused instead, so the
+// probe waits 200 ms for the server to read 1 MiB on loopback.)
+TEST_F(DiskTest, ChunksReadAheadOfTheWriterCountInFlightAndPastTheCapAreRefused) {
+    const std::string data = (dir_ / "data").string();
+    const fs::path uploads = fs::path(data) / "uploads";
+    fs::create_directories(uploads);
+    constexpr std::uint64_t kHeld = 1536ull << 20;
+    constexpr std::size_t kChunk = 256 << 10;
+    {
+        std::ofstream(uploads / "big.part").close();
+        fs::resize_file(uploads / "big.part", kHeld);  // a hole: no disk, hashed at CPU speed
+    }
+    // In flight at most the part file + 1.5 MiB.
+    testing::ServerProcess server(data, {"--max-upload-inflight-mb", "1537.5", "--transfer-threads",
+                                         "2", "--ingest-threads", "2"});
+    auto stub = v1::Surfel::NewStub(
+        grpc::CreateChannel(server.target(), grpc::InsecureChannelCredentials()));
+
+    // 1 MiB more to "big" while its first 1.5 GiB are hashed: part file + 1 MiB in flight, so a
+    // 768 KiB upload beside it does not fit, though none of the four chunks is appended yet.
+    {
+        grpc::ClientContext ctx;
+        v1::Cloud response;
+        auto big = SendChunks(*stub, ctx, response, "big", kHeld, 4, kChunk, 'b');
+        std::this_thread::sleep_for(std::chrono::milliseconds(200));
+        const grpc::Status probe = Probe(*stub, "probe", 1, 3 * kChunk);
+        // Checked after the probe: the committed size only grows.
+        const std::int64_t committed = Committed(*stub, "big");
+        ASSERT_EQ(committed, static_cast<std::int64_t>(kHeld)) << "the hash ended before the probe";
+        EXPECT_EQ(probe.error_code(), grpc::StatusCode::RESOURCE_EXHAUSTED)
+            << "a 768 KiB upload was taken beside 1 MiB read ahead and not counted: "
+            << probe.error_message();
+        EXPECT_NE(probe.error_message().find("--max-upload-inflight-mb"), std::string::npos)
+            << probe.error_message();
+        // The four chunks are appended once the hash is done; nothing read ahead is lost.
+        const auto appended = static_cast<std::int64_t>(kHeld + 4 * kChunk);
+        for (int i = 0; i < 1000 && Committed(*stub, "big") != appended; ++i)
+            std::this_thread::sleep_for(std::chrono::milliseconds(10));
+        EXPECT_EQ(Committed(*stub, "big"), appended);
+        big->WritesDone();
+        EXPECT_EQ(big->Finish().error_code(), grpc::StatusCode::FAILED_PRECONDITION);
+    }
+
+    // Resumed with four more chunks read ahead of the hash: the third would pass the cap. The
+    // call ends RESOURCE_EXHAUSTED naming the flag, with exactly the two chunks before it
+    // committed, as when each chunk is appended before the next is read.
+    {
+        grpc::ClientContext ctx;
+        v1::Cloud response;
+        auto big = SendChunks(*stub, ctx, response, "big", kHeld + 4 * kChunk, 4, kChunk, 'c');
+        big->WritesDone();
+        const grpc::Status s = big->Finish();
+        EXPECT_EQ(s.error_code(), grpc::StatusCode::RESOURCE_EXHAUSTED) << s.error_message();
+        EXPECT_NE(s.error_message().find("--max-upload-inflight-mb"), std::string::npos)
+            << s.error_message();
+        EXPECT_EQ(Committed(*stub, "big"), static_cast<std::int64_t>(kHeld + 6 * kChunk));
+    }
+
+    // Every call has ended: nothing stays counted (the refused and unappended chunks released),
+    // so 1.5 MiB fits again.
+    const grpc::Status s = Probe(*stub, "after", 6, kChunk);
+    EXPECT_EQ(s.error_code(), grpc::StatusCode::FAILED_PRECONDITION) << s.error_message();
+    EXPECT_EQ(Committed(*stub, "after"), static_cast<std::int64_t>(6 * kChunk));
 }
 
 TEST_F(DiskTest, AbandonedUploadPartFilesExpireButNotWhileAnUploadHoldsThem) {

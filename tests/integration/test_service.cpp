@@ -268,7 +268,7 @@ TEST_F(ServiceTest, UploadResumesAtTheCommittedSize) {
 }
 
 // The upload check runs while the chunks arrive (PlyPositionScan, fed by UploadSession::Append):
-// chunks cut inside the header and inside records, good and bad binary files, answered as the
+// chunks cut inside the header and inside records, good and bad binary and ascii files, answered as the
 // check of the whole file answers (the same Cloud, or the same code and message); a resumed
 // upload (its first bytes were not seen by this call) is checked after the last byte, the same.
 TEST_F(ServiceTest, UploadsCheckedWhileReceivedAnswerAsTheWholeFileCheck) {
@@ -279,8 +279,15 @@ TEST_F(ServiceTest, UploadsCheckedWhileReceivedAnswerAsTheWholeFileCheck) {
     PointCloud nan_cloud = ReadPly(Path("sphere.ply"));
     nan_cloud.positions[4000].y() = std::numeric_limits<float>::quiet_NaN();
     const std::string nan = FormatPly(nan_cloud);
+    PlyWriteOptions ascii;
+    ascii.format = PlyFormat::kAscii;
+    const std::string ok_ascii = FormatPly(ReadPly(Path("sphere.ply")), ascii);
+    std::string bad_ascii = ok_ascii;  // a coordinate that is not a number, far into the records
+    bad_ascii.insert(bad_ascii.find('\n', bad_ascii.size() / 2) + 1, "0.5 0.x5 ");
     const std::vector<std::pair<std::string, std::string>> files = {
-        {"ok.ply", ok}, {"nan.ply", nan}, {"nan-tail.ply", nan + "junk"}, {"cut.ply", ok.substr(0, ok.size() - 5)}};
+        {"ok.ply", ok}, {"nan.ply", nan}, {"nan-tail.ply", nan + "junk"}, {"cut.ply", ok.substr(0, ok.size() - 5)},
+        {"ok-ascii.ply", ok_ascii}, {"nan-ascii.ply", FormatPly(nan_cloud, ascii) + "junk\n"},
+        {"bad-ascii.ply", bad_ascii}, {"cut-ascii.ply", ok_ascii.substr(0, ok_ascii.size() - 5)}};
     int n = 0;
     for (const auto& [name, bytes] : files) {
         for (const bool resumed : {false, true}) {

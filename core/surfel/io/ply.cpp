@@ -31,6 +31,8 @@ struct Property {
     bool is_list = false;
     ScalarType type = ScalarType::kFloat32;        // value type; item type for a list
     ScalarType count_type = ScalarType::kUInt8;    // only for lists
+
+    bool operator==(const Property&) const = default;
 };
 
 struct Element {
@@ -303,6 +305,58 @@ struct FaceSink {
     std::uint64_t polygons = 0;
 };
 
+void AddPolygon(std::string_view file, const Element& e, std::uint64_t i, const std::vector<std::uint32_t>& poly,
+                FaceSink* faces) {
+    if (poly.size() < 3)
+        Fail(file, "element '" + e.name + "' " + std::to_string(i) + ": a face needs at least 3 vertices, has " + std::to_string(poly.size()));
+    ++faces->polygons;
+    for (std::size_t j = 1; j + 1 < poly.size(); ++j) faces->triangles->push_back({poly[0], poly[j], poly[j + 1]});
+}
+
+// Record `i` of an ascii element `e`, the text of data line `ln` (not blank): sinks[k] receives
+// scalar property k at index `slot`, `faces` the face list; `poly` and `toks` are scratch. What is
+// wrong fails naming the line, the element and record, and the field. The whole-file parse and
+// the upload's scan (PlyPositionScan) both read records with it.
+void ParseAsciiRecord(std::string_view file, const Element& e, std::uint64_t i, std::size_t slot, int ln,
+                      std::string_view line, const std::vector<Sink>& sinks, FaceSink* faces,
+                      std::vector<std::uint32_t>& poly, std::vector<std::string_view>& toks) {
+    toks = Tokenize(line);
+    std::size_t t = 0;
+    auto where = [&](const Property& p) {
+        return "line " + std::to_string(ln) + ": " + e.name + " " + std::to_string(i) + ", field '" + p.name + "': ";
+    };
+    for (std::size_t k = 0; k < e.props.size(); ++k) {
+        const Property& p = e.props[k];
+        double v = 0.0;
+        if (!p.is_list) {
+            if (t >= toks.size()) Fail(file, where(p) + "missing value (the line has " + std::to_string(toks.size()) + " values)");
+            if (!ParseAsciiValue(toks[t], p.type, &v))
+                Fail(file, where(p) + Quote(toks[t]) + " is not a valid " + ScalarTypeName(p.type));
+            ++t;
+            if (sinks.size() > k && sinks[k].active()) sinks[k].Put(slot, v);
+            continue;
+        }
+        if (t >= toks.size()) Fail(file, where(p) + "missing list length");
+        if (!ParseAsciiValue(toks[t], p.count_type, &v) || v < 0)
+            Fail(file, where(p) + Quote(toks[t]) + " is not a valid list length");
+        ++t;
+        const std::uint64_t m = static_cast<std::uint64_t>(v);
+        if (m > toks.size() - t)
+            Fail(file, where(p) + "list declares " + std::to_string(m) + " items but the line has " + std::to_string(toks.size() - t));
+        const bool keep = faces && static_cast<int>(k) == faces->list_index;
+        if (keep) poly.clear();
+        for (std::uint64_t j = 0; j < m; ++j, ++t) {
+            if (!ParseAsciiValue(toks[t], p.type, &v))
+                Fail(file, where(p) + Quote(toks[t]) + " is not a valid " + ScalarTypeName(p.type));
+            if (keep) poly.push_back(v < 0 || v > 4294967295.0 ? UINT32_MAX : static_cast<std::uint32_t>(v));
+        }
+        if (keep) AddPolygon(file, e, i, poly, faces);
+    }
+    if (t != toks.size())
+        Fail(file, "line " + std::to_string(ln) + ": " + e.name + " " + std::to_string(i) + " has " +
+                        std::to_string(toks.size()) + " values, expected " + std::to_string(t));
+}
+
 // Records of a fixed-size binary element read per block: about 64 KiB of them.
 std::uint64_t BlockRecords(const Element& e) {
     const std::size_t rec = e.FixedSize();
@@ -419,6 +473,9 @@ bool TakeFloatRecords(const char* p, std::size_t m, std::size_t rec, const std::
     return true;
 }
 
+// Records of an ascii vertex element a PlyPositionScan folds per block (48 KiB of positions).
+constexpr std::uint64_t kAsciiBlock = 4096;
+
 // A streamed element of at least this many blocks (4 MiB) is read in two halves, the second on a
 // thread of its own (the upload check runs after the last byte, while the client waits): a fixed
 // split, so the answer never depends on the number of cores.
@@ -470,10 +527,7 @@ class BodyReader {
 public:
     BodyReader(std::string_view data, std::string_view file, const Header& h)
         : data_(data), file_(file), h_(h), pos_(h.body_offset), line_(h.body_line),
-          swap_((h.format == PlyFormat::kBinaryBigEndian) == (std::endian::native == std::endian::little)) {
-        if (h.format == PlyFormat::kAscii)  // lines in the body, counted once (MaxRecords derives the rest)
-            body_lines_ = 1 + static_cast<std::uint64_t>(std::count(data_.begin() + pos_, data_.end(), '\n'));
-    }
+          swap_((h.format == PlyFormat::kBinaryBigEndian) == (std::endian::native == std::endian::little)) {}
 
     std::size_t remaining() const { return data_.size() - pos_; }
     std::size_t position() const { return pos_; }
@@ -481,8 +535,16 @@ public:
     // Upper bound on how many records of `e` the remaining data can hold (to size arrays safely).
     std::uint64_t MaxRecords(const Element& e) const {
         if (h_.format == PlyFormat::kAscii) {
-            const std::uint64_t consumed = static_cast<std::uint64_t>(line_ - h_.body_line);
-            return std::min<std::uint64_t>(e.count, body_lines_ - std::min(consumed, body_lines_));
+            // The lines from here to the end, counted once, at the first call (at a line's start:
+            // the body's, or after the records a PlyPositionScan read); the rest derive from it.
+            if (!counted_) {
+                counted_ = true;
+                count_line_ = line_;
+                if (pos_ <= data_.size())
+                    lines_ = 1 + static_cast<std::uint64_t>(std::count(data_.begin() + pos_, data_.end(), '\n'));
+            }
+            const std::uint64_t consumed = static_cast<std::uint64_t>(line_ - count_line_);
+            return std::min<std::uint64_t>(e.count, lines_ - std::min(consumed, lines_));
         }
         const std::size_t fs = e.FixedSize();
         if (fs == 0) return e.count;
@@ -507,6 +569,13 @@ public:
             if (h_.format == PlyFormat::kAscii) ReadAsciiRecord(e, i, sinks, faces, poly);
             else ReadBinaryRecord(e, i, sinks, faces, poly);
         }
+    }
+
+    // Past the records of an ascii element that a PlyPositionScan read: to byte `pos` (the start
+    // of the line after them), the next line being number `line`.
+    void SkipAscii(std::size_t pos, int line) {
+        pos_ = pos;
+        line_ = line;
     }
 
     void Finish() {
@@ -630,7 +699,7 @@ private:
                     const double v = LoadAsDouble(data_.data() + pos_ + j * isz, p.type, swap_);
                     poly.push_back(v < 0 || v > 4294967295.0 ? UINT32_MAX : static_cast<std::uint32_t>(v));
                 }
-                AddPolygon(e, i, poly, faces);
+                AddPolygon(file_, e, i, poly, faces);
             }
             pos_ += m * isz;
         }
@@ -650,49 +719,7 @@ private:
             ++line_;
             if (line.find_first_not_of(" \t\r") != std::string_view::npos) break;
         }
-        const int ln = line_ - 1;
-        toks_ = Tokenize(line);
-        std::size_t t = 0;
-        auto where = [&](const Property& p) {
-            return "line " + std::to_string(ln) + ": " + e.name + " " + std::to_string(i) + ", field '" + p.name + "': ";
-        };
-        for (std::size_t k = 0; k < e.props.size(); ++k) {
-            const Property& p = e.props[k];
-            double v = 0.0;
-            if (!p.is_list) {
-                if (t >= toks_.size()) Fail(file_, where(p) + "missing value (the line has " + std::to_string(toks_.size()) + " values)");
-                if (!ParseAsciiValue(toks_[t], p.type, &v))
-                    Fail(file_, where(p) + Quote(toks_[t]) + " is not a valid " + ScalarTypeName(p.type));
-                ++t;
-                if (sinks.size() > k && sinks[k].active()) sinks[k].Put(i, v);
-                continue;
-            }
-            if (t >= toks_.size()) Fail(file_, where(p) + "missing list length");
-            if (!ParseAsciiValue(toks_[t], p.count_type, &v) || v < 0)
-                Fail(file_, where(p) + Quote(toks_[t]) + " is not a valid list length");
-            ++t;
-            const std::uint64_t m = static_cast<std::uint64_t>(v);
-            if (m > toks_.size() - t)
-                Fail(file_, where(p) + "list declares " + std::to_string(m) + " items but the line has " + std::to_string(toks_.size() - t));
-            const bool keep = faces && static_cast<int>(k) == faces->list_index;
-            if (keep) poly.clear();
-            for (std::uint64_t j = 0; j < m; ++j, ++t) {
-                if (!ParseAsciiValue(toks_[t], p.type, &v))
-                    Fail(file_, where(p) + Quote(toks_[t]) + " is not a valid " + ScalarTypeName(p.type));
-                if (keep) poly.push_back(v < 0 || v > 4294967295.0 ? UINT32_MAX : static_cast<std::uint32_t>(v));
-            }
-            if (keep) AddPolygon(e, i, poly, faces);
-        }
-        if (t != toks_.size())
-            Fail(file_, "line " + std::to_string(ln) + ": " + e.name + " " + std::to_string(i) + " has " +
-                            std::to_string(toks_.size()) + " values, expected " + std::to_string(t));
-    }
-
-    void AddPolygon(const Element& e, std::uint64_t i, const std::vector<std::uint32_t>& poly, FaceSink* faces) {
-        if (poly.size() < 3)
-            Fail(file_, "element '" + e.name + "' " + std::to_string(i) + ": a face needs at least 3 vertices, has " + std::to_string(poly.size()));
-        ++faces->polygons;
-        for (std::size_t j = 1; j + 1 < poly.size(); ++j) faces->triangles->push_back({poly[0], poly[j], poly[j + 1]});
+        ParseAsciiRecord(file_, e, i, static_cast<std::size_t>(i), line_ - 1, line, sinks, faces, poly, toks_);
     }
 
     std::string_view data_;
@@ -701,7 +728,9 @@ private:
     std::size_t pos_;
     int line_;
     bool swap_;
-    std::uint64_t body_lines_ = 0;
+    mutable bool counted_ = false;      // MaxRecords of an ascii body: lines_ counted
+    mutable int count_line_ = 0;        // line_ when they were
+    mutable std::uint64_t lines_ = 0;   // lines from there to the end
     std::vector<std::string_view> toks_;
 };
 
@@ -726,9 +755,22 @@ struct PlyPositionScan::State {
     PositionLayout layout;
     bool swap = false;
     bool plain_floats = false;  // TakeFloatRecords can take the records
-    std::string carry;         // the start of a record cut off by the end of an Append
+    std::string carry;         // the start of a record (ascii: a line) cut off by the end of an Append
     std::uint64_t folded = 0;  // vertex records in `stream`
     PositionStream stream;     // its scratch holds one block
+    // An ascii vertex element (the first element): its records are read line by line as the
+    // whole-file parse reads them (ParseAsciiRecord); the first error turns the scan off, and the
+    // whole-file parse then finds it again and names it.
+    Element vertex;                   // as the header declares it
+    std::vector<Sink> sinks;          // x, y, z into the scratch block
+    std::uint64_t parsed = 0;         // records read (folded, or in the scratch block)
+    int line_no = 0;                  // the number of the next line (as BodyReader's)
+    std::uint64_t ascii_end = 0;      // once complete: the offset after the last record's line
+    std::vector<std::uint32_t> poly;  // scratch of ParseAsciiRecord
+    std::vector<std::string_view> toks;
+    // A longer line turns the scan off (a vertex record is a few dozen bytes; the whole-file
+    // parse reads any line).
+    static constexpr std::size_t kMaxLine = 64u << 10;
 
     void Append(std::string_view piece) {
         const std::uint64_t at = bytes;
@@ -762,7 +804,8 @@ struct PlyPositionScan::State {
 
     void Start(std::string_view all) {
         const Header h = ParseHeader(all, "", options);
-        if (h.format == PlyFormat::kAscii || h.body_offset != line_start) return Off();
+        if (h.body_offset != line_start) return Off();
+        if (h.format == PlyFormat::kAscii) return StartAscii(h, all);
         std::uint64_t offset = h.body_offset;
         for (const Element& e : h.elements) {
             if (e.HasLists()) return Off();  // the vertex records' offset depends on the data
@@ -780,8 +823,55 @@ struct PlyPositionScan::State {
         Off();  // no vertex element
     }
 
+    void StartAscii(const Header& h, std::string_view all) {
+        if (h.elements.empty() || h.elements.front().name != "vertex") return Off();
+        vertex = h.elements.front();
+        const int axes[3] = {vertex.Find("x"), vertex.Find("y"), vertex.Find("z")};
+        if (axes[0] < 0 || axes[1] < 0 || axes[2] < 0) return Off();
+        layout = PositionLayout::Of(h, vertex, h.body_offset);
+        line_no = h.body_line;
+        stream.scratch.resize(static_cast<std::size_t>(std::max<std::uint64_t>(1, std::min<std::uint64_t>(kAsciiBlock, vertex.count))));
+        sinks.assign(vertex.props.size(), Sink{});
+        for (int a = 0; a < 3; ++a) sinks[axes[a]] = Sink{stream.scratch.front().data() + a, nullptr, 3, 1.0f};
+        ascii_end = h.body_offset;
+        phase = Phase::kBody;
+        return AsciiBody(all.substr(h.body_offset));
+    }
+
+    // The next bytes of an ascii body: whole lines are read as records, the last partial one kept.
+    void AsciiBody(std::string_view piece) {
+        while (parsed < vertex.count && !piece.empty()) {
+            const std::size_t nl = piece.find('\n');
+            if (nl == std::string_view::npos) {
+                if (carry.size() + piece.size() > kMaxLine) return Off();
+                carry.append(piece);
+                return;
+            }
+            std::string_view text = piece.substr(0, nl);
+            if (!carry.empty()) {
+                if (carry.size() + nl > kMaxLine) return Off();
+                carry.append(text);
+                text = carry;
+            }
+            piece.remove_prefix(nl + 1);
+            ascii_end += text.size() + 1;
+            ++line_no;
+            if (text.find_first_not_of(" \t\r") != std::string_view::npos) {
+                const std::size_t slot = static_cast<std::size_t>(parsed - folded);
+                ParseAsciiRecord("", vertex, parsed, slot, line_no - 1, text, sinks, nullptr, poly, toks);
+                ++parsed;
+                if (slot + 1 == stream.scratch.size() || parsed == vertex.count) {
+                    stream.Take(slot + 1, folded);
+                    folded = parsed;
+                }
+            }
+            carry.clear();
+        }
+    }
+
     // `piece` is the file's bytes from offset `at`.
     void Body(std::string_view piece, std::uint64_t at) {
+        if (layout.format == PlyFormat::kAscii) return AsciiBody(piece);
         const std::uint64_t begin = std::max(at, layout.offset);
         const std::uint64_t end = std::min<std::uint64_t>(at + piece.size(), layout.offset + layout.record * layout.count);
         if (begin >= end) return;
@@ -827,6 +917,8 @@ struct PlyPositionScan::State {
         head = {};
         carry = {};
         stream.scratch = {};
+        sinks = {};
+        toks = {};
     }
 
     bool complete() const { return phase == Phase::kBody && folded == layout.count; }
@@ -861,13 +953,21 @@ PointCloud ParsePlyImpl(std::string_view data, std::string_view file, const PlyR
     std::vector<std::string> attributes;  // cloud.AttributeNames() of the full parse
     const bool keep = !options.positions_only && !summary;
     const bool streaming = summary && h.format != PlyFormat::kAscii && !vertex->HasLists();
+    // An ascii vertex element a PlyPositionScan of exactly these bytes read whole, with the layout
+    // and properties found here: its positions are taken, its lines not read again.
+    const bool ascii_scanned = summary && scan && h.format == PlyFormat::kAscii && scan->complete() &&
+                               scan->bytes == data.size() && scan->layout.format == PlyFormat::kAscii &&
+                               &h.elements.front() == vertex &&
+                               scan->layout == PositionLayout::Of(h, *vertex, h.body_offset) &&
+                               scan->vertex.props == vertex->props;
     PositionStream stream;
     std::uint64_t vertex_count = 0;
     BodyReader body(data, file, h);
     for (const auto& e : h.elements) {
         std::vector<Sink> sinks(e.props.size());
         FaceSink faces;
-        const std::uint64_t capacity = body.MaxRecords(e);
+        const bool skipped = ascii_scanned && &e == vertex;  // all its records are in the scan
+        const std::uint64_t capacity = skipped ? e.count : body.MaxRecords(e);
         if (&e == vertex) {
             const std::uint64_t n = capacity;
             // Which property feeds which attribute is decided here, whether or not the values
@@ -888,10 +988,10 @@ PointCloud ParsePlyImpl(std::string_view data, std::string_view file, const PlyR
                 sinks[ic] = {base + 2, nullptr, 3, 1.0f};
                 return true;
             };
-            if (streaming) {  // the sinks point into one block; ReadFixedBinary fills it block by block
+            if (streaming || skipped) {  // the sinks point into one block; ReadFixedBinary fills it block by block
                 const int ix = idx("x"), iy = idx("y"), iz = idx("z");
                 claimed[ix] = claimed[iy] = claimed[iz] = true;
-                if (n > 0) {
+                if (streaming && n > 0) {
                     stream.scratch.resize(static_cast<std::size_t>(std::min(BlockRecords(e), n)));
                     float* base = stream.scratch.front().data();
                     sinks[ix] = {base + 0, nullptr, 3, 1.0f};
@@ -960,13 +1060,21 @@ PointCloud ParsePlyImpl(std::string_view data, std::string_view file, const PlyR
         // The scan's result only for exactly these bytes and this layout (else: read them here).
         const bool scanned = streamed && scan && scan->complete() && scan->bytes == data.size() &&
                              scan->layout == PositionLayout::Of(h, e, body.position());
+        if (skipped) {
+            body.SkipAscii(static_cast<std::size_t>(scan->ascii_end), scan->line_no);
+            stream.bounds = scan->stream.bounds;
+            stream.first_bad = scan->stream.first_bad;
+            stream.bad_value = scan->stream.bad_value;
+            vertex_count = e.count;
+            continue;
+        }
         body.Read(e, sinks, faces.triangles ? &faces : nullptr, capacity, streamed ? &stream : nullptr,
                   scanned ? &scan->stream : nullptr);
         if (streamed) vertex_count = e.count;  // ReadFixedBinary refused a file too short for them
         if (faces.triangles && info) info->face_count = faces.polygons;
     }
     body.Finish();
-    if (!streaming) vertex_count = cloud.positions.size();
+    if (!streaming && !ascii_scanned) vertex_count = cloud.positions.size();
 
     // Validation of values (after all elements: a face element may precede the vertices).
     if (stream.first_bad != UINT64_MAX) Fail(file, NonFiniteMessage(stream.first_bad, stream.bad_value));
@@ -980,7 +1088,7 @@ PointCloud ParsePlyImpl(std::string_view data, std::string_view file, const PlyR
                                std::to_string(vertex_count));
     if (summary) {
         summary->points = vertex_count;
-        summary->bounds = streaming ? stream.bounds : cloud.Bounds();
+        summary->bounds = streaming || ascii_scanned ? stream.bounds : cloud.Bounds();
         summary->attributes = attributes;
     }
     if (info) {

@@ -87,10 +87,14 @@ PlySummary InspectPly(std::string_view data, std::string_view name, const PlyRea
 /// then runs every other check as before (header, truncation, other elements, trailing bytes,
 /// faces; the same errors in the same order) and takes the positions from the scan instead of
 /// reading them again, but only when the scan covered the whole vertex element of exactly these
-/// bytes with the layout its own header parse finds; otherwise (an ascii file, a vertex element
-/// with lists or after one, a header the scan could not parse, bytes not appended from the
-/// start) it reads them as without one. Not thread-safe; a result, never an error, is what it
-/// changes: it throws nothing.
+/// bytes with the layout its own header parse finds; otherwise (a binary vertex element with
+/// lists or after one, an ascii vertex element that is not the first element or has an error or
+/// a line over 64 KiB, an ascii file whose last vertex line has no newline, a header the scan
+/// could not parse, bytes not appended from the start) it reads them as without one. An ascii
+/// vertex element is read line by line as the whole-file check reads it (every field of every
+/// record checked the same way); at its first error the scan stops and the whole-file check
+/// finds and names it. Not thread-safe; a result, never an error, is what it changes: it throws
+/// nothing.
 class PlyPositionScan {
   public:
     explicit PlyPositionScan(const PlyReadOptions& options = {});

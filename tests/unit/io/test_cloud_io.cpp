@@ -331,7 +331,17 @@ TEST(PlyPositionScan, AgreesWithTheWholeFileCheckOnValidFilesOfEveryFormat) {
     ExpectScanMatchesAtEveryCut(AsBigEndian(le), "be.ply", true);
     PlyWriteOptions ascii;
     ascii.format = PlyFormat::kAscii;
-    ExpectScanMatchesAtEveryCut(FormatPly(cloud, ascii), "ascii.ply", false);  // read after the last byte
+    const std::string ascii_ply = FormatPly(cloud, ascii);
+    ExpectScanMatchesAtEveryCut(ascii_ply, "ascii.ply", true);
+    // Ascii: CR LF, blank lines, signs, exponents, a double and a uchar, a list in the vertex
+    // records and faces after them (read after the last byte); the last line without a newline.
+    const std::string odd_ascii =
+        "ply\r\nformat ascii 1.0\r\ncomment x\r\nelement vertex 3\r\nproperty uchar tag\r\nproperty double z\r\n"
+        "property list uchar int ids\r\nproperty float x\r\nproperty float y\r\nelement face 1\r\n"
+        "property list uchar int vertex_indices\r\nend_header\r\n"
+        "7 -1.5 2 4 -5 2.25 0.5\r\n\r\n  \t\r\n14 1e-3 0 -3.5 -0\r\n\n+21 3 1 9 1e30 2\r\n3 0 1 2\r\n\r\n";
+    ExpectScanMatchesAtEveryCut(odd_ascii, "odd-ascii.ply", true);
+    ExpectScanMatchesAtEveryCut(ascii_ply.substr(0, ascii_ply.size() - 1), "no-newline.ply", false);
     // Doubles, an extra property before x and a header with CR LF, comments and end_header in one.
     std::string odd = "ply\r\nformat binary_little_endian 1.0\r\ncomment end_header is not here\r\n"
                       "element vertex 3\r\nproperty uchar tag\r\nproperty double z\r\nproperty double x\r\n"
@@ -364,6 +374,9 @@ TEST(PlyPositionScan, AgreesWithTheWholeFileCheckOnValidFilesOfEveryFormat) {
         ff.append(reinterpret_cast<const char*>(&v), 4);
     }
     ExpectScanMatchesAtEveryCut(ff, "faces-first.ply", false);
+    ExpectScanMatchesAtEveryCut("ply\nformat ascii 1.0\nelement face 1\nproperty list uchar int vertex_indices\n"
+                                "element vertex 3\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+                                "3 0 1 2\n0 0 0\n1 0 0\n0 1 0\n", "faces-first-ascii.ply", false);
     // Many blocks (64 KiB of records) in large pieces, cut inside records.
     ShapeOptions big = o;
     big.points = 66 * 2730 + 17;
@@ -372,6 +385,13 @@ TEST(PlyPositionScan, AgreesWithTheWholeFileCheckOnValidFilesOfEveryFormat) {
     for (std::size_t c = 100; c < large.size(); c += (1u << 20) + 5) cuts.push_back(c);
     EXPECT_TRUE(ExpectScanMatchesWholeFile(large, "large.ply", cuts));
     EXPECT_TRUE(ExpectScanMatchesWholeFile(AsBigEndian(large), "large-be.ply", cuts));
+    // Many ascii blocks (4096 records), in pieces of an upload's size cut inside lines.
+    ShapeOptions many = o;
+    many.points = 3 * 4096 + 17;
+    const std::string large_ascii = FormatPly(SampleShape(Shape::kSphere, many), ascii);
+    std::vector<std::size_t> ascii_cuts;
+    for (std::size_t c = 100; c < large_ascii.size(); c += (256u << 10) + 5) ascii_cuts.push_back(c);
+    EXPECT_TRUE(ExpectScanMatchesWholeFile(large_ascii, "large-ascii.ply", ascii_cuts));
 }
 
 TEST(PlyPositionScan, RefusesWhatTheWholeFileCheckRefusesWithTheSameMessage) {
@@ -405,6 +425,34 @@ TEST(PlyPositionScan, RefusesWhatTheWholeFileCheckRefusesWithTheSameMessage) {
     ExpectScanMatchesAtEveryCut(header + "property float y\nproperty float z\nend_header", "no-newline.ply", false);
     ExpectScanMatchesAtEveryCut("ply\nformat binary_little_endian 1.0\nelement vertex 0\nproperty float x\n"
                                 "property float y\nproperty float z\nend_header\n", "empty.ply", true);
+    // Ascii: what a vertex line can get wrong turns the scan off and the whole-file check names
+    // it; non-finite positions, a bad face index and trailing text are found after the scan.
+    PlyWriteOptions ascii;
+    ascii.format = PlyFormat::kAscii;
+    for (const std::size_t bad : {std::size_t{0}, std::size_t{17}, std::size_t{29}}) {
+        PointCloud c = cloud;
+        c.positions[bad].y() = std::numeric_limits<float>::quiet_NaN();
+        if (bad == 17) c.positions[20].x() = std::numeric_limits<float>::infinity();
+        ExpectScanMatchesAtEveryCut(FormatPly(c, ascii), "nan-ascii.ply", true);
+        ExpectScanMatchesAtEveryCut(FormatPly(c, ascii) + "\n \njunk", "nan-tail-ascii.ply", true);
+    }
+    const std::string ascii_header = "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+                                     "property float z\nproperty uchar c\nproperty list uchar int l\nend_header\n";
+    for (const char* body : {"0 0 0 1 0\n1 x 0 1 0\n0 1 0 1 0\n", "0 0 0 1 0\n1 0 0 1\n0 1 0 1 0\n",
+                             "0 0 0 1 0\n1 0 0 1 0 7\n0 1 0 1 0\n", "0 0 0 1 0\n1 0 0 300 0\n0 1 0 1 0\n",
+                             "0 0 0 1 2 5\n", "0 0 0 1 -1\n", "0 0 0 1 0\n1 0 0 1 0\n", "0 0 0 1 0\n1 0 0 1e1 0\n"})
+        ExpectScanMatchesAtEveryCut(ascii_header + body, "bad-ascii.ply", false);
+    ExpectScanMatchesAtEveryCut(ascii_header + "0 0 0 1 0\n1 0 0 1 1 4\n0 1 0 1 0\n0 0 1 1 0\n", "extra-line.ply",
+                                true);
+    ExpectScanMatchesAtEveryCut(ascii_header + "0 0 0 1 0\n1 0 0 1 0\n0 1 0 1 0", "last-line.ply", false);
+    PointCloud ascii_mesh = cloud;
+    ascii_mesh.triangles = {{0, 1, 30}};
+    ExpectScanMatchesAtEveryCut(FormatPly(ascii_mesh, ascii), "mesh-bad-ascii.ply", true);
+    ExpectScanMatchesAtEveryCut(FormatPly(cloud, ascii), "many-ascii.ply", false, limits);
+    // A vertex line over 64 KiB: the scan stops; the whole-file check reads it.
+    EXPECT_FALSE(ExpectScanMatchesWholeFile(ascii_header + "0 0 0 1 0\n1" + std::string(70000, ' ') +
+                                                " 0 0 1 0\n0 1 0 1 0\n",
+                                            "long-line.ply", {100, 40000}));
     ExpectScanMatchesAtEveryCut("not a ply file\n", "junk.ply", false);
     ExpectScanMatchesAtEveryCut("1 2 3\n4 5 6\n", "points.xyz", false);
 }
@@ -462,6 +510,15 @@ TEST(PlyPositionScan, IsTakenInsteadOfReadingThePositionsAgain) {
     // A different size (one byte more at the end): the scan is not taken, the bytes are read.
     const PlySummary t = InspectPly(bytes_b + "\n", "b.ply", {}, &scan);
     EXPECT_EQ(t.bounds.min, b.Bounds().min);
+    // Ascii: the lines of the vertex element are not read again either.
+    const std::string header = "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
+                               "property float z\nend_header\n";
+    PlyPositionScan ascii_scan;
+    ascii_scan.Append(header + "1 2 3\n4 5 6\n");
+    ASSERT_TRUE(ascii_scan.complete());
+    const PlySummary u = InspectPly(header + "7 8 9\n1 1 1\n", "c.ply", {}, &ascii_scan);
+    EXPECT_EQ(u.bounds.min, Vec3f(1, 2, 3));
+    EXPECT_EQ(u.bounds.max, Vec3f(4, 5, 6));
 }
 
 // ---- Files ------------------------------------------------------------------------------------
