@@ -1134,7 +1134,8 @@ PlyPositionScan::~PlyPositionScan() = default;
 void PlyPositionScan::Append(std::string_view bytes) noexcept {
     try {
         state_->Append(bytes);
-    } catch (...) {  // no memory for the scan: the whole-file pass reads the positions
+    } catch (...) {  // an ascii record's error, or no memory for the scan: the whole-file pass reads
+                     // the positions (and names the error)
         state_->Off();
     }
 }
