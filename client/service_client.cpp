@@ -187,6 +187,7 @@ v1::Cloud ServiceClient::UploadFile(const std::string& path, const ByteProgress&
     v1::UploadRequest req;
     req.set_upload_id(upload_id);
     req.set_filename(std::filesystem::path(path).filename().string());
+    req.set_total_size(total);  // the server refuses at once what could never be stored
     bool open = true;
     do {
         // Read straight into the message's bytes (no copy of our own); gRPC serialises from it.
@@ -205,6 +206,7 @@ v1::Cloud ServiceClient::UploadFile(const std::string& path, const ByteProgress&
             break;
         }
         req.clear_filename();
+        req.clear_total_size();
         if (progress) progress(offset, total);
     } while (offset < total);
     if (open) writer->WritesDone();

@@ -309,8 +309,7 @@ struct HttpFront::Impl {
         std::uint64_t counted = 0;
         try {
             if (req.has_header("Content-Length")) {
-                session.CheckFits(
-                    ParseUint(req.get_header_value("Content-Length"), "Content-Length"));
+                session.ExpectSize(ParseUint(req.get_header_value("Content-Length"), "Content-Length"));
                 res.set_header("Connection",
                                "close");  // in case of an error before the body is read
             }

@@ -239,6 +239,7 @@ class UploadReactor final : public grpc::ServerReadReactor<v1::UploadRequest> {
         if (request.data().size() > max_chunk)
             throw Error(ErrorCode::kInvalidArgument,
                         "data: a chunk holds at most " + std::to_string(max_chunk) + " bytes");
+        if (request.total_size() != 0) session_->ExpectSize(request.total_size());
         session_->CheckFits(request.data().size());
     }
 

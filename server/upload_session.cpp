@@ -147,6 +147,8 @@ UploadSession::UploadSession(Operations& ops, const Caller& caller, std::string 
 UploadSession::~UploadSession() {
     CloseFile();
     ops_.ReleaseInflight(inflight_);
+    // The part file's committed bytes stay counted (a resume); the space for the rest goes back.
+    if (prereserved_ && ops_.retention()) ops_.retention()->Release(prereserved_);
     if (claimed_) ops_.ReleaseUpload(Operations::ScopedUploadId(caller_, id_));
 }
 
@@ -175,6 +177,41 @@ void UploadSession::CheckFits(std::uint64_t more) {
     }
 }
 
+void UploadSession::ExpectSize(std::uint64_t total) {
+    if (total_ != 0) {
+        if (total != total_)
+            throw Error(ErrorCode::kInvalidArgument, "total_size: " + std::to_string(total) + " after " +
+                                                         std::to_string(total_) + " within one upload");
+        return;
+    }
+    if (total < committed_)
+        throw Error(ErrorCode::kInvalidArgument, "total_size: " + std::to_string(total) + " is less than the " +
+                                                     std::to_string(committed_) + " bytes upload " + id_ +
+                                                     " has committed");
+    CheckFits(total - committed_);
+    // What can never be stored goes, as Append's refusals do: the part file and its bytes.
+    auto refuse = [&](const std::string& why) {
+        const std::uint64_t had = committed_;
+        Discard();
+        throw Error(ErrorCode::kResourceExhausted,
+                    why + (had ? "; the upload's " + std::to_string(had) + " committed bytes were discarded" : ""));
+    };
+    const std::uint64_t cap = ops_.limits().max_upload_inflight_bytes;
+    if (cap != 0 && total > cap)
+        refuse("upload " + id_ + ": its " + std::to_string(total) +
+               " bytes are more than the whole --max-upload-inflight-mb (" + std::to_string(cap) + " bytes)");
+    if (worker::Retention* retention = ops_.retention()) {
+        try {
+            retention->Reserve(total - committed_, "upload " + id_, total);
+        } catch (const Error& e) {
+            if (e.code() != ErrorCode::kResourceExhausted) throw;
+            refuse(e.what());
+        }
+    }
+    prereserved_ = total - committed_;
+    total_ = total;
+}
+
 void UploadSession::HashCommitted() {
     std::ifstream in(path_, std::ios::binary);
     if (!in) throw Error(ErrorCode::kInternal, "cannot read " + path_);
@@ -198,8 +235,14 @@ void UploadSession::Append(std::string_view data) {
     CheckFits(data.size());
     SURFEL_CHECK(fd_ >= 0, "Append after Finish or Discard on upload " << id_);
     if (data.empty()) return;
+    if (total_ != 0 && committed_ + data.size() > total_)
+        throw Error(ErrorCode::kInvalidArgument, "data: upload " + id_ + " passes its total_size " +
+                                                     std::to_string(total_) + " at byte " +
+                                                     std::to_string(committed_ + data.size()));
     worker::Retention* retention = ops_.retention();
-    if (retention) {
+    if (retention && prereserved_ >= data.size()) {
+        prereserved_ -= data.size();  // ExpectSize reserved it
+    } else if (retention) {
         try {
             retention->Reserve(data.size(), "upload " + id_, committed_ + data.size());
         } catch (const Error& e) {
@@ -242,6 +285,14 @@ void UploadSession::Append(std::string_view data) {
 
 v1::Cloud UploadSession::Finish() {
     SURFEL_CHECK(hashed_, "Finish before HashCommitted on upload " << id_);
+    if (total_ != 0 && committed_ != total_) {
+        const std::uint64_t had = committed_;
+        Discard();
+        ops_.metrics().CountUpload(false);
+        throw Error(ErrorCode::kInvalidArgument, "upload " + id_ + " ended at " + std::to_string(had) +
+                                                     " bytes, but its total_size said " + std::to_string(total_) +
+                                                     "; the bytes were discarded: upload it again");
+    }
     const std::string id = hash_.FinishHex();
     worker::Retention* retention = ops_.retention();
     // No eviction of the cloud between finding it here and recording this owner.
@@ -327,9 +378,11 @@ void UploadSession::Discard() {
     CloseFile();
     std::error_code ec;
     const bool removed = fs::remove(path_, ec);
-    // The part file's bytes were counted by retention (Load, or chunk by chunk).
-    if (removed && ops_.retention()) ops_.retention()->Release(committed_);
+    // The part file's bytes were counted by retention (Load, or chunk by chunk), and so was the
+    // space ExpectSize reserved for the rest.
+    if (ops_.retention()) ops_.retention()->Release((removed ? committed_ : 0) + prereserved_);
     committed_ = 0;
+    prereserved_ = 0;
 }
 
 }  // namespace surfel::server

@@ -53,6 +53,14 @@ class UploadSession {
     /// Throws kResourceExhausted, and discards the part file, when `more` bytes would take the
     /// upload past limits().max_upload_bytes.
     void CheckFits(std::uint64_t more);
+    /// The client's word for the upload's whole size (UploadRequest.total_size, HTTP's
+    /// Content-Length), before its first Append: refuses at once what could never be stored, and
+    /// reserves the disk space of the bytes still to come, so that no blob is evicted for an
+    /// upload refused later. kInvalidArgument: below the committed bytes, or another size than a
+    /// call gave before. kResourceExhausted, the part file discarded (as Append's refusals): past
+    /// limits().max_upload_bytes (CheckFits), past the whole in-flight cap, or past the disk
+    /// quota when eviction cannot make room (nothing evicted then).
+    void ExpectSize(std::uint64_t total);
     /// Reads and hashes the committed bytes of a resumed upload (slow: up to max_upload_bytes).
     void HashCommitted();
     /// Appends `data` to the part file (after CheckFits). Needs hashed(). The transport counted
@@ -84,6 +92,8 @@ class UploadSession {
     std::uint64_t committed_ = 0;
     std::uint64_t writeback_from_ = 0;  // bytes before this offset have had writeback started
     std::uint64_t inflight_ = 0;        // bytes this session counts in Operations' in-flight total
+    std::uint64_t total_ = 0;           // ExpectSize's: the upload's whole size, 0 = not given
+    std::uint64_t prereserved_ = 0;     // disk space reserved by ExpectSize for bytes not yet written
     int fd_ = -1;                       // the part file, open for appending
     worker::Sha256 hash_;
     // The upload check's positions folded in as the chunks are appended (a fresh upload only:

@@ -23,6 +23,7 @@
 #include <fstream>
 #include <string>
 #include <thread>
+#include <tuple>
 
 #include "server_process.h"
 #include "service_client.h"
@@ -474,6 +475,85 @@ TEST_F(DiskTest, ChunksReadAheadOfTheWriterCountInFlightAndPastTheCapAreRefused)
     const grpc::Status s = Probe(*stub, "after", 6, kChunk);
     EXPECT_EQ(s.error_code(), grpc::StatusCode::FAILED_PRECONDITION) << s.error_message();
     EXPECT_EQ(Committed(*stub, "after"), static_cast<std::int64_t>(6 * kChunk));
+}
+
+// An upload that says its size (UploadRequest.total_size; `surfel upload` does) is refused at
+// once when it could never be stored, before any of its bytes is written or any blob evicted.
+// Without it the first chunk (256 KiB) fits only by evicting X, and the upload is refused at a
+// later chunk, X gone for nothing (docs/retention.md, "Limits of this design", until session 17).
+TEST_F(DiskTest, AnUploadThatSaysItsSizeIsRefusedAtOnceEvictingNothing) {
+    const std::string data = (dir_ / "data").string();
+    const std::string x_path = Cloud("x.ply", 12000, 1), big_path = Cloud("big.ply", 24000, 2);
+    const std::uint64_t x_size = fs::file_size(x_path), big_size = fs::file_size(big_path);
+    const std::uint64_t quota = 450000;
+    ASSERT_GT(x_size + (256u << 10), quota);  // the first chunk needs X's room
+    ASSERT_GT(big_size, quota);               // the whole file never fits
+    ASSERT_LE(x_size, quota);
+    char gb[32];
+    std::snprintf(gb, sizeof gb, "%.9f", static_cast<double>(quota) / 1e9);
+    testing::ServerProcess server(data, {"--max-disk-gb", gb, "--max-upload-mb", "1"});
+    ServiceClient c(server.target());
+    const std::string x = c.UploadFile(x_path).id();
+    const grpc::Status refused = StatusOf([&] { c.UploadFile(big_path); });
+    EXPECT_EQ(refused.error_code(), grpc::StatusCode::RESOURCE_EXHAUSTED);
+    EXPECT_NE(refused.error_message().find(std::to_string(big_size) + " bytes are more than the whole --max-disk-gb"),
+              std::string::npos)
+        << refused.error_message();
+    EXPECT_EQ(c.GetCloud(x).id(), x);  // nothing evicted
+    EXPECT_EQ(LeftoverTemps(data), std::vector<std::string>{});
+
+    auto stub = v1::Surfel::NewStub(grpc::CreateChannel(server.target(), grpc::InsecureChannelCredentials()));
+    // Each message: the id, the offset, `bytes` bytes, the total size said, whether it is the last.
+    auto call = [&](const std::string& id, std::vector<std::tuple<std::uint64_t, std::size_t, std::uint64_t, bool>> msgs) {
+        grpc::ClientContext ctx;
+        v1::Cloud response;
+        auto writer = stub->Upload(&ctx, &response);
+        for (const auto& [offset, bytes, total, last] : msgs) {
+            v1::UploadRequest r;
+            r.set_upload_id(id);
+            r.set_filename("t.ply");
+            r.set_write_offset(static_cast<std::int64_t>(offset));
+            r.set_data(std::string(bytes, 'x'));
+            r.set_total_size(total);
+            r.set_finish_write(last);
+            if (!writer->Write(r)) break;
+        }
+        writer->WritesDone();
+        return writer->Finish();
+    };
+    // Past --max-upload-mb: refused at its first (small) chunk, which is not kept.
+    const grpc::Status too_big = call("too-big", {{0, 1000, 2u << 20, false}});
+    EXPECT_EQ(too_big.error_code(), grpc::StatusCode::RESOURCE_EXHAUSTED) << too_big.error_message();
+    EXPECT_NE(too_big.error_message().find("exceeds the limit of 1048576 bytes"), std::string::npos)
+        << too_big.error_message();
+    EXPECT_EQ(Committed(*stub, "too-big"), 0);
+    // Ending at another size than it said: INVALID_ARGUMENT, the bytes discarded.
+    const grpc::Status short_end = call("short", {{0, 500, 1000, true}});
+    EXPECT_EQ(short_end.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+    EXPECT_NE(short_end.error_message().find("ended at 500 bytes, but its total_size said 1000"), std::string::npos)
+        << short_end.error_message();
+    EXPECT_EQ(Committed(*stub, "short"), 0);
+    // Sending more than it said: refused at the chunk that passes it; the bytes before it kept.
+    const grpc::Status long_end = call("long", {{0, 600, 1000, false}, {600, 600, 0, true}});
+    EXPECT_EQ(long_end.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+    EXPECT_NE(long_end.error_message().find("passes its total_size 1000 at byte 1200"), std::string::npos)
+        << long_end.error_message();
+    EXPECT_EQ(Committed(*stub, "long"), 600);
+    // Another size in a later message of a call, and a size below what a resumed upload has
+    // committed.
+    const grpc::Status changed = call("long", {{600, 10, 1000, false}, {610, 10, 2000, false}});
+    EXPECT_EQ(changed.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+    EXPECT_NE(changed.error_message().find("total_size: 2000 after 1000"), std::string::npos) << changed.error_message();
+    const grpc::Status below = call("long-2", {{0, 600, 0, false}});
+    EXPECT_EQ(below.error_code(), grpc::StatusCode::FAILED_PRECONDITION) << below.error_message();  // incomplete
+    const grpc::Status less = call("long-2", {{600, 10, 300, false}});
+    EXPECT_EQ(less.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+    EXPECT_NE(less.error_message().find("total_size: 300 is less than the 600 bytes"), std::string::npos)
+        << less.error_message();
+    // A correct one is stored (the reserved space becomes the blob's: X still fits beside it).
+    const std::string ok = c.UploadFile(Cloud("ok.ply", 1000, 3)).id();
+    EXPECT_EQ(c.GetCloud(ok).id(), ok);
+    EXPECT_EQ(c.GetCloud(x).id(), x);
 }
 
 TEST_F(DiskTest, AbandonedUploadPartFilesExpireButNotWhileAnUploadHoldsThem) {
