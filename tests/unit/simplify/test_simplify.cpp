@@ -944,15 +944,11 @@ TEST_P(MemberMethod, MembersAreDistinctInputPointsWithTheirOwnAttributes) {
     o.target = 900;
     o.representative = SimplifyRepresentative::kMember;
     o.measure_error = false;
-    SimplifyResult one, many;
-    {
-        tbb::global_control limit(tbb::global_control::max_allowed_parallelism, 1);
-        one = Simplify(c, o);
-    }
-    {
-        tbb::global_control limit(tbb::global_control::max_allowed_parallelism, 4);
-        many = Simplify(c, o);
-    }
+    const auto at_threads = [&](int threads) {
+        tbb::global_control limit(tbb::global_control::max_allowed_parallelism, threads);
+        return Simplify(c, o);
+    };
+    const SimplifyResult one = at_threads(1), many = at_threads(4);
     const PointCloud& s = many.cloud;
     ASSERT_EQ(s.size(), 900u);
     ASSERT_EQ(s.normals.size(), s.size());
