@@ -146,8 +146,8 @@ void RegisterRenderCommands(CLI::App& app) {
     sub->add_option("--quality", a->quality,
                     "full: the notes' method (normal-aware weights, adaptive bandwidth, |c| < 1e-3 h, both shadow stages). "
                     "preview: about twice as fast: the paper's surface (plain weights, fixed h, so no normal estimation), "
-                    "|c| < 0.03 h, shadow rays only through balls they pass near the centre; hits move by < 0.03 h, "
-                    "thin parts and shadow outlines differ (figures: bench/README.md, session 18). "
+                    "|c| < 0.03 h, shadow rays only through balls they pass near the centre; "
+                    "thin parts, fine detail (hits stop up to ~0.2 h earlier) and shadow outlines differ (figures: bench/README.md, session 18). "
                     "--weights, --bandwidth and --precision override its choices")
         ->capture_default_str()->check(CLI::IsMember({"full", "preview"}));
     sub->add_flag("--half", a->half, "Write EXR channels as 16-bit half floats");

@@ -120,14 +120,17 @@ enum class RenderQuality {
     /// kPreviewRelativePrecision x h (1.15 iterations a hit instead of 2.1), and shadow rays in
     /// the first stage alone (RenderOptions::shadow_second_stage false). The image differs from
     /// kFull's as the paper's surface does (thin parts, uneven sampling; on the bunny 15 % of the
-    /// pixels by more than 1e-3), and from the paper's surface by a hit's position within that
-    /// precision (0.75 % of the pixels by more than 1e-3) and a few shadow-outline pixels.
+    /// pixels by more than 1e-3), and from the paper's surface where the iteration stops earlier
+    /// (0.75 % of the bunny's pixels by more than 1e-3; 1.6-1.9 % of the dragon's and buddha's)
+    /// and in a few shadow-outline pixels.
     kPreview,
 };
 
 /// RenderQuality::kPreview's acceptance |c| < kPreviewRelativePrecision x h (AaOptions::relative_precision):
-/// 0.03 h = 0.04 median spacings; a hit then lies within that of the converged surface (about a
-/// twentieth of a pixel at the paper's framing of the bunny).
+/// 0.03 h = 0.04 median spacings. It bounds the last fit's offset, not the distance to where the
+/// paper's 1e-3 h would have stopped: that is 0.011 h at p99 on the bunny (a pixel there is
+/// 0.4 h), 0.04 h on the dragon and 0.18 h on the buddha (bench/README.md, session 18). 0.01 h
+/// (`--precision`) about halves those for 7 % more instructions.
 inline constexpr float kPreviewRelativePrecision = 3e-2f;
 
 /// Sets the fields of `options` that `quality` chooses (kFull: the defaults of each; kPreview: see
