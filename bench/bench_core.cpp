@@ -92,9 +92,11 @@ void SimplifyWith(benchmark::State& state, const std::string& d, SimplifyMethod 
     SimplifyCounters(state, d, r.cloud);
 }
 
-void RenderBench(benchmark::State& state, const std::string& d, const Camera& camera) {
+void RenderBench(benchmark::State& state, const std::string& d, const Camera& camera,
+                 RenderQuality quality = RenderQuality::kFull) {
     const PointCloud& c = Dataset(d);
     RenderOptions o;
+    ApplyRenderQuality(quality, &o);
     o.camera = camera;
     RenderResult r;
     double setup_ms = 0;
@@ -160,6 +162,10 @@ void RenderBench(benchmark::State& state, const std::string& d, const Camera& ca
                  }, 1);
     Register("render_paper_320x250", {"bunny"},
              [](benchmark::State& s, const std::string& d) { RenderBench(s, d, PaperCamera()); });
+    // Session 18: the same at RenderQuality::kPreview (surfel render --quality preview).
+    Register("render_paper_preview_320x250", {"bunny"}, [](benchmark::State& s, const std::string& d) {
+        RenderBench(s, d, PaperCamera(), RenderQuality::kPreview);
+    });
     Register("render_loose_200x400", {"bunny"}, [](benchmark::State& s, const std::string& d) {
         RenderBench(s, d, Camera::Framing(Dataset(d).Bounds(), 200, 400));
     });

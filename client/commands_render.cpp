@@ -53,6 +53,8 @@ struct RenderArgs {
     bool no_creases = !defaults.creases;
     std::string bandwidth = defaults.surface.bandwidth == AaBandwidth::kAdaptive ? "adaptive" : "fixed";
     std::string weights = defaults.surface.normal_sigma > 0 ? "normal" : "plain";
+    std::string quality = "full";
+    bool bandwidth_given = false, weights_given = false;  // else the job leaves them to --quality
     CommonFlags flags;
     JobFlags job;
 };
@@ -88,8 +90,9 @@ void RunRender(RenderArgs& a) {
     r.set_precision(a.precision);
     r.set_degree(static_cast<v1::RenderJob::Degree>(a.degree + 1));  // --degree 0..2
     r.set_max_iterations(a.max_iterations);
-    r.set_bandwidth(a.bandwidth == "adaptive" ? v1::RenderJob::ADAPTIVE : v1::RenderJob::FIXED);
-    r.set_weights(a.weights == "normal" ? v1::RenderJob::NORMAL_AWARE : v1::RenderJob::PLAIN);
+    r.set_quality(a.quality == "preview" ? v1::RenderJob::PREVIEW : v1::RenderJob::FULL);
+    if (a.bandwidth_given) r.set_bandwidth(a.bandwidth == "adaptive" ? v1::RenderJob::ADAPTIVE : v1::RenderJob::FIXED);
+    if (a.weights_given) r.set_weights(a.weights == "normal" ? v1::RenderJob::NORMAL_AWARE : v1::RenderJob::PLAIN);
     r.set_format(format == ImageFormat::kPng ? v1::RenderJob::PNG
                  : a.half                    ? v1::RenderJob::EXR_HALF
                                              : v1::RenderJob::EXR);
@@ -133,11 +136,20 @@ void RegisterRenderCommands(CLI::App& app) {
     sub->add_option("--spp", a->spp, "Stratified samples per pixel")->capture_default_str()->check(CLI::Range(1, kMaxSamplesPerPixel));
     sub->add_option("--background", a->background, "Background colour r,g,b (linear)")->default_val("0,0,0");
     sub->add_option("--h", a->h, "Gaussian scale h (0 = 1.4 x median sample spacing; with --bandwidth adaptive, the scale where the spacing is the median)")->capture_default_str()->check(CLI::NonNegativeNumber);
-    sub->add_option("--precision", a->precision, "Convergence |c| < precision (0 = 1e-3 h)")->capture_default_str()->check(CLI::NonNegativeNumber);
+    sub->add_option("--precision", a->precision, "Convergence |c| < precision (0 = 1e-3 h; 0.03 h with --quality preview)")->capture_default_str()->check(CLI::NonNegativeNumber);
     sub->add_option("--degree", a->degree, "Local polynomial degree (0, 1, 2)")->capture_default_str()->check(CLI::Range(0, 2));
     sub->add_option("--max-iterations", a->max_iterations, "Iterations per ball")->capture_default_str()->check(CLI::Range(1, kMaxSurfaceIterations));
-    sub->add_option("--bandwidth", a->bandwidth, "Gaussian scale: fixed (one h) or adaptive (a smooth h per point from the sampling density)")->capture_default_str()->check(CLI::IsMember({"fixed", "adaptive"}));
-    sub->add_option("--weights", a->weights, "Neighbour weights: plain (the paper's) or normal (also by normal agreement: thin parts stay two sheets; estimates normals when the cloud has none)")->capture_default_str()->check(CLI::IsMember({"plain", "normal"}));
+    sub->add_option("--bandwidth", a->bandwidth, "Gaussian scale: fixed (one h) or adaptive (a smooth h per point from the sampling density); overrides --quality's choice")->capture_default_str()->check(CLI::IsMember({"fixed", "adaptive"}))
+        ->each([a](const std::string&) { a->bandwidth_given = true; });
+    sub->add_option("--weights", a->weights, "Neighbour weights: plain (the paper's) or normal (also by normal agreement: thin parts stay two sheets; estimates normals when the cloud has none); overrides --quality's choice")->capture_default_str()->check(CLI::IsMember({"plain", "normal"}))
+        ->each([a](const std::string&) { a->weights_given = true; });
+    sub->add_option("--quality", a->quality,
+                    "full: the notes' method (normal-aware weights, adaptive bandwidth, |c| < 1e-3 h, both shadow stages). "
+                    "preview: about twice as fast: the paper's surface (plain weights, fixed h, so no normal estimation), "
+                    "|c| < 0.03 h, shadow rays only through balls they pass near the centre; "
+                    "thin parts, fine detail (hits stop up to ~0.2 h earlier) and shadow outlines differ (figures: bench/README.md, session 18). "
+                    "--weights, --bandwidth and --precision override its choices")
+        ->capture_default_str()->check(CLI::IsMember({"full", "preview"}));
     sub->add_flag("--half", a->half, "Write EXR channels as 16-bit half floats");
     std::vector<std::string> ops;
     for (const BooleanOp op : kBooleanOps) ops.emplace_back(BooleanOpName(op));

@@ -298,7 +298,7 @@ const vec = (v) => ({ x: v.x, y: v.y, z: v.z });
 
 function renderSpec(format) {
   const spec = { cloudId: state.cloud.id, width: +$("width").value, height: +$("height").value,
-                 samplesPerPixel: +$("spp").value, format };
+                 samplesPerPixel: +$("spp").value, format, quality: $("quality").value };
   if (state.camera) {
     const eye = state.camera.position, target = state.controls.target;
     spec.camera = { eye: vec(eye), target: vec(target), up: vec(state.camera.up), fovyDeg: 40 };

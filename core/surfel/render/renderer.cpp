@@ -91,6 +91,26 @@ void RenderOptions::Validate() const {
     CheckRange("tile", tile, 1, kMaxImageSide);
 }
 
+void ApplyRenderQuality(RenderQuality quality, RenderOptions* options) {
+    const RenderOptions full;
+    AaOptions& s = options->surface;
+    switch (quality) {
+        case RenderQuality::kFull:
+            s.normal_sigma = full.surface.normal_sigma;
+            s.bandwidth = full.surface.bandwidth;
+            s.relative_precision = full.surface.relative_precision;
+            options->shadow_second_stage = full.shadow_second_stage;
+            return;
+        case RenderQuality::kPreview:
+            s.normal_sigma = 0.0f;
+            s.bandwidth = AaBandwidth::kFixed;
+            s.relative_precision = kPreviewRelativePrecision;
+            options->shadow_second_stage = false;
+            return;
+    }
+    InvalidField("quality", "unknown quality " + std::to_string(static_cast<int>(quality)));
+}
+
 namespace {
 
 // ---- Embree callbacks ------------------------------------------------------------------------
@@ -221,8 +241,9 @@ void IntersectFn(const RTCIntersectFunctionNArguments* args) {
 constexpr double kGammaFirst = 0.5;
 
 // Any hit: the ray is blocked (tfar = -inf) by a converged, accepted hit in a ball with gamma >=
-// kGammaFirst; a ball with a smaller gamma is deferred (ctx->deferred). A caught exception also
-// ends the traversal.
+// kGammaFirst; a ball with a smaller gamma is deferred (ctx->deferred), or passed over when the
+// render has no second stage (RenderOptions::shadow_second_stage false: ctx->deferred is null). A
+// caught exception also ends the traversal.
 void OccludedFn(const RTCOccludedFunctionNArguments* args) {
     if (!args->valid[0]) return;
     auto* ctx = reinterpret_cast<RayContext*>(args->context);
@@ -234,7 +255,7 @@ void OccludedFn(const RTCOccludedFunctionNArguments* args) {
         double t0, t1, gamma;
         if (!BallInterval(*s, args->primID, o, d, ray->tnear, ray->tfar, &t0, &t1, &gamma)) return;
         if (gamma < kGammaFirst) {
-            ctx->deferred->emplace_back(s->layer, args->primID);
+            if (ctx->deferred) ctx->deferred->emplace_back(s->layer, args->primID);  // null: no second stage
             return;
         }
         auto hit = s->surface->IntersectInBall(args->primID, o, d, t0, t1, &ctx->counters);
@@ -365,7 +386,7 @@ bool InShadow(const Integrator& I, const AaHit& hit, double h, const Vec3d& n, c
     rtcInitIntersectContext(&sctx.embree);
     sctx.filter = &I.opt.hit_filter;
     deferred.clear();
-    sctx.deferred = &deferred;
+    sctx.deferred = I.opt.shadow_second_stage ? &deferred : nullptr;
     RTCRayHit sr = MakeRay(so, ldir, 0.0, ldist - 0.5 * h);
     const float tnear = sr.ray.tnear, tfar = sr.ray.tfar;
     const Vec3d o(sr.ray.org_x, sr.ray.org_y, sr.ray.org_z), d(sr.ray.dir_x, sr.ray.dir_y, sr.ray.dir_z);

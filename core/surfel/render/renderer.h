@@ -70,6 +70,12 @@ struct RenderOptions {
     Camera camera;
     std::vector<Light> lights;            ///< Empty = one directional light over the camera's left shoulder.
     bool shadows = true;                  ///< Hard shadows by occlusion rays.
+    /// Shadow rays in the paper's two stages (section 5): first the balls the ray passes within
+    /// half the radius of the centre (gamma >= 0.5), then, when none of them blocked it, the
+    /// others. false (RenderQuality::kPreview) = the first stage alone: only a converged hit in a
+    /// ball the ray passes near the centre blocks it, which a ray through a densely sampled sheet
+    /// nearly always finds; the shadow's outline can move by about half a sample spacing.
+    bool shadow_second_stage = true;
     int samples_per_pixel = 1;            ///< Stratified; 1 = the pixel centre.
     Vec3d background{0, 0, 0};
     Vec3d albedo{0.8, 0.8, 0.8};          ///< Surface colour when the cloud has none.
@@ -100,6 +106,37 @@ struct RenderOptions {
     /// Range messages are CheckRange's (surfel/base/validate.h). Default-constructed options are valid.
     void Validate() const;
 };
+
+/// A render's speed against fidelity to the notes' method (ApplyRenderQuality). The CLI's
+/// `--quality`, the job's RenderJob.quality.
+enum class RenderQuality {
+    /// The defaults of RenderOptions and AaOptions: normal-aware weights (normals estimated for a
+    /// cloud without them), adaptive bandwidth, |c| < 1e-3 h, both shadow stages.
+    kFull,
+    /// 0.58x the instructions of kFull at the paper's framing, time_ms 72 against 146 ms
+    /// (bench/README.md, session 18): the paper's surface (plain Gaussian weights and one fixed
+    /// h, as `--weights plain --bandwidth fixed`: no normal estimation and no adaptive scales in
+    /// the set-up; the notes' boundary stays on), the iteration accepted at |c| <
+    /// kPreviewRelativePrecision x h (1.15 iterations a hit instead of 2.1), and shadow rays in
+    /// the first stage alone (RenderOptions::shadow_second_stage false). The image differs from
+    /// kFull's as the paper's surface does (thin parts, uneven sampling; on the bunny 15 % of the
+    /// pixels by more than 1e-3), and from the paper's surface where the iteration stops earlier
+    /// (0.75 % of the bunny's pixels by more than 1e-3; 1.6-1.9 % of the dragon's and buddha's)
+    /// and in a few shadow-outline pixels.
+    kPreview,
+};
+
+/// RenderQuality::kPreview's acceptance |c| < kPreviewRelativePrecision x h (AaOptions::relative_precision):
+/// 0.03 h = 0.04 median spacings. It bounds the last fit's offset, not the distance to where the
+/// paper's 1e-3 h would have stopped: that is 0.011 h at p99 on the bunny (a pixel there is
+/// 0.4 h), 0.04 h on the dragon and 0.18 h on the buddha (bench/README.md, session 18). 0.01 h
+/// (`--precision`) about halves those for 7 % more instructions.
+inline constexpr float kPreviewRelativePrecision = 3e-2f;
+
+/// Sets the fields of `options` that `quality` chooses (kFull: the defaults of each; kPreview: see
+/// RenderQuality) and leaves the others as they are; a caller that takes explicit settings as well
+/// (the worker: RenderJob's weights, bandwidth, precision) applies them after this.
+void ApplyRenderQuality(RenderQuality quality, RenderOptions* options);
 
 /// What a render did (the paper's section 6 figures).
 struct RenderStats {

@@ -141,6 +141,8 @@ void AaOptions::Validate() const {
     CheckAtLeast("h", h, 0.0);
     CheckAtLeast("precision", precision, 0.0);
     CheckRange("degree", degree, 0, 2);
+    CheckRange("relative_precision", relative_precision, 0, 1);
+    if (!(relative_precision > 0)) InvalidField("relative_precision", "must be > 0, got 0");
     CheckRange("max_iterations", max_iterations, 1, kMaxSurfaceIterations);
     CheckAtLeast("cutoff", cutoff, 1.0);
     CheckRange("normal_ratio", normal_ratio, 0, 1);
@@ -379,7 +381,7 @@ void AaSurface::SetUpScales() {
     // DefaultScale is 2 median spacings; half of kSurfaceScaleSpacings of it (0.7f exactly).
     if (o.h == 0) o.h = (0.5f * kSurfaceScaleSpacings) * DefaultScale(density);
     if (!(o.h > 0)) throw Error(ErrorCode::kInvalidArgument, "cannot derive h from the cloud (all points coincide); pass h");
-    if (o.precision == 0) o.precision = 1e-3f * o.h;
+    if (o.precision == 0) o.precision = o.relative_precision * o.h;
     // The grid's cell-sorted points as x/y/z arrays (dense grids: the gathers and the adaptive
     // scales read them), once.
     const auto fill_sorted_xyz = [this] {

@@ -62,11 +62,17 @@ inline constexpr float kSurfaceScaleSpacings = 1.4f;
 /// for rims (holes in a random sphere at h = 1.4 spacings).
 inline constexpr float kBoundarySpacings = 2.0f;
 
+/// AaOptions::relative_precision, the default: the paper's |c| < 1e-3 h (section 6).
+inline constexpr float kPaperRelativePrecision = 1e-3f;
+
 struct AaOptions {
     float h = 0.0f;             ///< Gaussian scale; 0 = kSurfaceScaleSpacings (1.4) x median spacing. Adaptive: the median point's scale.
     int degree = 2;             ///< Local polynomial degree (0 = the paper's analysis, 1, 2).
     float cutoff = 3.0f;        ///< Points farther than cutoff * h are ignored (weight < exp(-9)).
-    float precision = 0.0f;     ///< Accept when |c| < precision (absolute); 0 = 1e-3 * h (paper, section 6).
+    float precision = 0.0f;     ///< Accept when |c| < precision (absolute); 0 = relative_precision * h.
+    /// precision = 0: accept when |c| < relative_precision x h (the paper's section 6: 1e-3, the
+    /// default; RenderQuality::kPreview: kPreviewRelativePrecision).
+    float relative_precision = kPaperRelativePrecision;
     int max_iterations = 20;    ///< Iterations per ball before giving up.
     float normal_ratio = 0.5f;  ///< Normal well-defined when lambda0 < normal_ratio * lambda1 (Definition 1).
     int ball_k = 6;             ///< Ball radius rho_i encloses the ball_k nearest neighbours (section 5).
@@ -97,7 +103,7 @@ struct AaOptions {
     /// Throws Error(kInvalidArgument, "<field>: <what>") for the first bad field, named as in the
     /// render job spec: "h" (finite, >= 0; 0 = auto), "precision" (finite, >= 0; 0 = auto),
     /// "degree" (0..2), "max_iterations" (1..kMaxSurfaceIterations), and, not in the job spec,
-    /// "cutoff" (finite, >= 1), "normal_ratio" (0..1), "ball_k" (1..kMaxBallNeighbors), "bandwidth"
+    /// "relative_precision" (0..1, > 0), "cutoff" (finite, >= 1), "normal_ratio" (0..1), "ball_k" (1..kMaxBallNeighbors), "bandwidth"
     /// (a known kind), "ball_h" (0..10), "normal_sigma" (0..10),
     /// "boundary" (0..10).
     /// Example: "degree: must lie in 0..2, got 3". The default-constructed options are valid.

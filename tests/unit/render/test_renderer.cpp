@@ -314,6 +314,10 @@ TEST(RenderOptions, EachBadFieldIsNamedInTheMessage) {
         {"h", [](RenderOptions& o) { o.surface.h = -1; }, "h: must be finite and at least 0, got -1"},
         {"precision", [](RenderOptions& o) { o.surface.precision = std::numeric_limits<float>::infinity(); },
          "precision: must be finite and at least 0, got inf"},
+        {"relative_precision 0", [](RenderOptions& o) { o.surface.relative_precision = 0; },
+         "relative_precision: must be > 0, got 0"},
+        {"relative_precision 2", [](RenderOptions& o) { o.surface.relative_precision = 2; },
+         "relative_precision: must lie in 0..1, got 2"},
         {"degree", [](RenderOptions& o) { o.surface.degree = 3; }, "degree: must lie in 0..2, got 3"},
         {"max_iterations 0", [](RenderOptions& o) { o.surface.max_iterations = 0; },
          "max_iterations: must lie in 1..1000, got 0"},
@@ -466,6 +470,136 @@ TEST(Render, HitFilterRejectsTheNearSheet) {
     EXPECT_GT(checked, 700);
     EXPECT_EQ(misses, 0);
     EXPECT_LT(worst_depth, 1e-3);
+}
+
+// ---- RenderQuality ---------------------------------------------------------------------------
+
+TEST(RenderQuality, FullIsTheDefaultsAndPreviewIsThePapersSurfaceWithItsThreeChanges) {
+    const RenderOptions defaults;
+    RenderOptions full;
+    full.surface.normal_sigma = 0.25f;  // a setting kFull puts back
+    full.shadow_second_stage = false;
+    full.surface.h = 0.5f;              // and one it does not choose
+    ApplyRenderQuality(RenderQuality::kFull, &full);
+    EXPECT_EQ(full.surface.normal_sigma, defaults.surface.normal_sigma);
+    EXPECT_EQ(full.surface.bandwidth, defaults.surface.bandwidth);
+    EXPECT_EQ(full.surface.relative_precision, kPaperRelativePrecision);
+    EXPECT_TRUE(full.shadow_second_stage);
+    EXPECT_EQ(full.surface.h, 0.5f);
+    RenderOptions preview;
+    ApplyRenderQuality(RenderQuality::kPreview, &preview);
+    EXPECT_EQ(preview.surface.normal_sigma, 0.0f);
+    EXPECT_EQ(preview.surface.bandwidth, AaBandwidth::kFixed);
+    EXPECT_EQ(preview.surface.relative_precision, kPreviewRelativePrecision);
+    EXPECT_FALSE(preview.shadow_second_stage);
+    EXPECT_EQ(preview.surface.degree, defaults.surface.degree);
+    EXPECT_EQ(preview.surface.cutoff, defaults.surface.cutoff);
+    EXPECT_NO_THROW(preview.Validate());
+    try {
+        ApplyRenderQuality(static_cast<RenderQuality>(9), &preview);
+        ADD_FAILURE() << "accepted";
+    } catch (const Error& e) {
+        EXPECT_STREQ(e.what(), "quality: unknown quality 9");
+    }
+}
+
+TEST(RenderQuality, PreviewHitsTheSampledSphereWithinItsPrecisionAndItsNormalsWithinTwoDegrees) {
+    // The unit sphere of SphereHeadOnMatchesAnalyticMaskDepthAndNormals at preview quality (with
+    // a light and shadows): the same mask off the silhouette, every hit within 0.03 h (the
+    // acceptance's scale; it bounds the last fit's offset, not this distance, but on a sphere the
+    // iteration stops well within it) + 1e-3 (the full render's bound against the analytic
+    // sphere) of it, its normals within 2 degrees. (A sphere is a quadric: the degree-2 fits converge at once at
+    // either precision, so the iteration counts do not differ here; the bunny's do.)
+    const PointCloud cloud = Sphere();
+    RenderOptions opt;
+    opt.camera.eye = {0, 0, 4};
+    opt.camera.width = opt.camera.height = 64;
+    opt.camera.fovy_deg = 40;
+    opt.lights = {{Light::Kind::kDirectional, {-0.4, -0.5, -1}, {1, 1, 1}, 1.0}};
+    ApplyRenderQuality(RenderQuality::kPreview, &opt);
+    const RenderResult r = Render(cloud, opt);
+    const double h = r.stats.h;
+    EXPECT_FLOAT_EQ(r.stats.precision, kPreviewRelativePrecision * h);
+    const double pixel_angle = 40.0 / 64 * M_PI / 180;
+    int mask_errors = 0, checked = 0;
+    double worst_depth = 0, worst_angle = 0;
+    for (int y = 0; y < 64; ++y)
+        for (int x = 0; x < 64; ++x) {
+            const Vec3d d = opt.camera.Direction(x + 0.5, y + 0.5);
+            const auto t = HitSphere(opt.camera.eye, d);
+            const double closest = (opt.camera.eye - opt.camera.eye.dot(d) * d).norm();
+            const double silhouette_px = std::abs(std::asin(std::min(1.0, closest / 4.0)) - std::asin(0.25)) / pixel_angle;
+            if (silhouette_px <= 1.0) continue;
+            ++checked;
+            const bool hit = r.image.At(x, y, 3) > 0.5f;
+            if (hit != t.has_value()) ++mask_errors;
+            if (hit && t) {
+                worst_depth = std::max(worst_depth, std::abs(r.image.At(x, y, 4) - *t));
+                const Vec3d n(r.image.At(x, y, 5), r.image.At(x, y, 6), r.image.At(x, y, 7));
+                const Vec3d truth = (opt.camera.eye + *t * d).normalized();
+                worst_angle = std::max(worst_angle, std::acos(std::min(1.0, n.dot(truth))) * 180 / M_PI);
+            }
+        }
+    EXPECT_GT(checked, 3000);
+    EXPECT_EQ(mask_errors, 0);
+    EXPECT_LT(worst_depth, kPreviewRelativePrecision * h + 1e-3);
+    EXPECT_LT(worst_angle, 2.0);
+    EXPECT_GT(r.stats.shadow_rays, 0u);
+}
+
+TEST(RenderQuality, PreviewsFirstStageShadowRaysStillFindTheSphereBeforeTheWall) {
+    // The wall behind the sphere of PointBehindTheSphereIsInShadow, seen from above, with shadow
+    // rays in the first stage alone: the point in the sphere's shadow stays dark, a lit one lit.
+    PointCloud scene = Sphere();
+    ShapeOptions o;
+    o.points = 40000;
+    o.normals = true;
+    o.scale = 3;
+    PointCloud wall = SampleShape(Shape::kPlane, o);
+    for (auto& p : wall.positions) p.z() = -2.5f;
+    scene.positions.insert(scene.positions.end(), wall.positions.begin(), wall.positions.end());
+    scene.normals.insert(scene.normals.end(), wall.normals.begin(), wall.normals.end());
+    RenderOptions opt;
+    opt.camera.eye = {0, 5, 4};
+    opt.camera.target = {0, 0, -2.5};
+    opt.camera.width = opt.camera.height = 48;
+    opt.camera.fovy_deg = 50;
+    opt.lights = {{Light::Kind::kDirectional, {0, 0, -1}, {1, 1, 1}, 1.0}};
+    opt.specular = 0;
+    ApplyRenderQuality(RenderQuality::kPreview, &opt);
+    ASSERT_FALSE(opt.shadow_second_stage);
+    const RenderResult r = Render(scene, opt);
+    auto pixel_of = [&](const Vec3d& p) {
+        int best_x = 0, best_y = 0;
+        double best = -2;
+        const Vec3d want = (p - opt.camera.eye).normalized();
+        for (int y = 0; y < 48; ++y)
+            for (int x = 0; x < 48; ++x) {
+                const double c = opt.camera.Direction(x + 0.5, y + 0.5).dot(want);
+                if (c > best) best = c, best_x = x, best_y = y;
+            }
+        return std::pair{best_x, best_y};
+    };
+    const auto [hx, hy] = pixel_of({0.0, -0.6, -2.5});
+    ASSERT_GT(r.image.At(hx, hy, 3), 0.5f);
+    EXPECT_NEAR(r.image.At(hx, hy, 4), (Vec3d(0, -0.6, -2.5) - opt.camera.eye).norm(), 0.1);
+    EXPECT_NEAR(r.image.At(hx, hy, 0), 0.1 * 0.8, 1e-4);  // ambient only: in shadow
+    const Vec3d lit(1.6, 0.0, -2.5);  // outside the shadow (x^2 + y^2 > 1), in view past the sphere
+    const auto [lx, ly] = pixel_of(lit);
+    EXPECT_NEAR(r.image.At(lx, ly, 4), (lit - opt.camera.eye).norm(), 0.1);  // the wall
+    EXPECT_GT(r.image.At(lx, ly, 0), 0.5f);                                  // lit: ambient + Lambert
+    // The shadow's area in the image matches the two-stage render's to a few outline pixels.
+    opt.shadow_second_stage = true;
+    const RenderResult both = Render(scene, opt);
+    int dark_first = 0, dark_both = 0, differ = 0;
+    for (int y = 0; y < 48; ++y)
+        for (int x = 0; x < 48; ++x) {
+            const bool a = r.image.At(x, y, 3) > 0.5f && r.image.At(x, y, 0) < 0.1f;
+            const bool b = both.image.At(x, y, 3) > 0.5f && both.image.At(x, y, 0) < 0.1f;
+            dark_first += a, dark_both += b, differ += a != b;
+        }
+    EXPECT_GT(dark_both, 50);
+    EXPECT_LE(differ, dark_both / 20 + 2) << dark_first << " against " << dark_both;
 }
 
 }  // namespace

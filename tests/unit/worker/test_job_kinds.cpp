@@ -9,6 +9,7 @@
 #include "surfel/base/error.h"
 #include "surfel/base/shapes.h"
 #include "surfel/io/ply.h"
+#include "surfel/render/renderer.h"
 #include "surfel/worker/job_kind.h"
 
 namespace surfel::worker {
@@ -178,6 +179,35 @@ TEST(RenderJob, ValidationNamesTheField) {
     EXPECT_EQ(ValidationMessage(spec), "");
     *spec.mutable_render()->mutable_camera()->mutable_target() = ToProto(Vec3d(0, 0, 0));
     EXPECT_EQ(ValidationMessage(spec), "render.camera: eye and target must differ");
+}
+
+TEST(RenderJob, QualityIsCheckedAndReachesTheRenderWithTheExplicitFieldsOverridingIt) {
+    v1::JobSpec spec;
+    spec.mutable_render()->set_cloud_id("c");
+    spec.mutable_render()->set_quality(static_cast<v1::RenderJob::Quality>(5));
+    EXPECT_EQ(ValidationMessage(spec), "render.quality: unknown quality 5");
+    v1::RenderJob& r = *spec.mutable_render();
+    r.set_width(12);
+    r.set_height(10);
+    auto run = [&] { return RunJob(spec, [](const std::string&) { return SmallSphere(); }).report; };
+    r.set_quality(v1::RenderJob::QUALITY_UNSPECIFIED);
+    const nlohmann::json unspecified = run();
+    r.set_quality(v1::RenderJob::FULL);
+    const nlohmann::json full = run();
+    r.set_quality(v1::RenderJob::PREVIEW);
+    const nlohmann::json preview = run();
+    EXPECT_EQ(unspecified["quality"], "full");
+    EXPECT_EQ(full["quality"], "full");
+    EXPECT_EQ(preview["quality"], "preview");
+    // The acceptance: 1e-3 h at full quality, kPreviewRelativePrecision h at preview (h is the one
+    // scale at both: the sphere is evenly sampled).
+    const double h = full["h"].get<double>();
+    EXPECT_NEAR(full["precision"].get<double>(), 1e-3 * h, 1e-6 * h);
+    EXPECT_NEAR(unspecified["precision"].get<double>(), 1e-3 * h, 1e-6 * h);
+    EXPECT_NEAR(preview["precision"].get<double>(), kPreviewRelativePrecision * preview["h"].get<double>(), 1e-6 * h);
+    // An explicit precision overrides the preset's.
+    r.set_precision(2e-4 * h);
+    EXPECT_NEAR(run()["precision"].get<double>(), 2e-4 * h, 1e-6 * h);
 }
 
 TEST(SimplifyJob, ValidationNamesTheField) {

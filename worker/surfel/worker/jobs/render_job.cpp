@@ -42,6 +42,7 @@ void CheckProtoOnly(const v1::RenderJob& job) {
     if (!v1::RenderJob::Bandwidth_IsValid(job.bandwidth()))
         Bad("bandwidth", "unknown bandwidth " + std::to_string(job.bandwidth()));
     if (!v1::RenderJob::Weights_IsValid(job.weights())) Bad("weights", "unknown weights " + std::to_string(job.weights()));
+    if (!v1::RenderJob::Quality_IsValid(job.quality())) Bad("quality", "unknown quality " + std::to_string(job.quality()));
     for (int i = 0; i < job.lights_size(); ++i)
         if (!v1::Light::Kind_IsValid(job.lights(i).kind()))
             Bad("lights[" + std::to_string(i) + "].kind", "unknown kind " + std::to_string(job.lights(i).kind()));
@@ -87,6 +88,13 @@ RenderOptions ToRenderOptions(const v1::RenderJob& job, const BoundingBox& bound
         if (l.has_color()) L.color = FromProto(l.color());
         if (l.intensity() != 0) L.intensity = l.intensity();
         o.lights.push_back(L);
+    }
+    // The preset first: the explicit fields below (weights, bandwidth, precision) override it.
+    switch (job.quality()) {
+        case v1::RenderJob::QUALITY_UNSPECIFIED: break;
+        case v1::RenderJob::FULL: ApplyRenderQuality(RenderQuality::kFull, &o); break;
+        case v1::RenderJob::PREVIEW: ApplyRenderQuality(RenderQuality::kPreview, &o); break;
+        default: break;  // CheckProtoOnly refused it
     }
     o.shadows = !job.no_shadows();
     if (job.samples_per_pixel()) o.samples_per_pixel = job.samples_per_pixel();
@@ -247,6 +255,7 @@ public:
         std::tie(out.media_type, out.extension) = ResultType(spec);
         out.bytes = EncodeImage(r.image, out.extension == ".png" ? ImageFormat::kPng : ImageFormat::kExr, w);
         out.report = RenderReportJson(r.stats, cloud.size(), options.camera.width, options.camera.height);
+        out.report["quality"] = job.quality() == v1::RenderJob::PREVIEW ? "preview" : "full";
         if (csg) {
             out.report["csg_op"] = BooleanOpName(BooleanOpFromProto(job.csg_op(), "render.csg_op"));
             out.report["points_b"] = clouds.at(1)->size();
@@ -279,8 +288,7 @@ public:
         // the image is allocated: the larger of the two counts.
         const bool estimates_normals =
             std::find(in.attributes.begin(), in.attributes.end(), "normals") == in.attributes.end() &&
-            (job.weights() == v1::RenderJob::NORMAL_AWARE ||
-             (job.weights() == v1::RenderJob::WEIGHTS_UNSPECIFIED && AaOptions{}.normal_sigma > 0));
+            ToRenderOptions(job, StandInBounds(job)).surface.normal_sigma > 0;
         const std::uint64_t image = pixels * (kImageBytesPerPixel + encode_per_pixel);
         const std::uint64_t normals = estimates_normals ? kRenderNormalEstimateBytesPerPoint * in.points : 0;
         const std::uint64_t work = kRenderFixedBytes + (job.format() == v1::RenderJob::PNG ? kPngFixedBytes : 0) +
