@@ -6,8 +6,8 @@
 #include <algorithm>
 #include <atomic>
 #include <cerrno>
-#include <cstring>
 #include <chrono>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <optional>
@@ -15,8 +15,8 @@
 #include <thread>
 
 #include "surfel/base/error.h"
-#include "upload_source.h"
 #include "surfel/worker/sha256.h"
+#include "upload_source.h"
 
 namespace surfel::client {
 namespace {
@@ -120,7 +120,8 @@ v1::Cloud ServiceClient::GetCloud(const std::string& id) {
 // unchanged, gets the same id, so a broken upload resumes; the cloud's id (the server's SHA-256)
 // is checked against the file's own at the end, which catches a file that changed meanwhile.
 // `mapped`: the file's mapping when there is one (the same bytes, not read again).
-std::string UploadFingerprint(const std::string& path, std::uint64_t size, const FileMapping* mapped) {
+std::string UploadFingerprint(const std::string& path, std::uint64_t size,
+                              const FileMapping* mapped) {
     std::error_code ec;
     const auto mtime = std::filesystem::last_write_time(path, ec).time_since_epoch().count();
     worker::Sha256 h;
@@ -128,8 +129,9 @@ std::string UploadFingerprint(const std::string& path, std::uint64_t size, const
     h.Update(head);
     const std::size_t part = static_cast<std::size_t>(std::min<std::uint64_t>(size, 1 << 20));
     if (mapped) {
-        const bool whole = HashMappedBytes(h, mapped->data(), part) &&
-                           (size <= part || HashMappedBytes(h, mapped->data() + (size - part), part));
+        const bool whole =
+            HashMappedBytes(h, mapped->data(), part) &&
+            (size <= part || HashMappedBytes(h, mapped->data() + (size - part), part));
         if (!whole) throw std::runtime_error(path + ": shorter than its size while uploading");
         return "f" + h.FinishHex().substr(0, 48);
     }
@@ -235,11 +237,14 @@ v1::Cloud ServiceClient::UploadFile(const std::string& path, const ByteProgress&
     } join{hasher};
 
     // The generated stub's Upload with raw messages (UploadMessage): the same RPC on the wire.
-    static const std::string method_name = "/" + std::string(v1::Surfel::service_full_name()) + "/Upload";
-    const grpc::internal::RpcMethod method(method_name.c_str(), grpc::internal::RpcMethod::CLIENT_STREAMING);
+    static const std::string method_name =
+        "/" + std::string(v1::Surfel::service_full_name()) + "/Upload";
+    const grpc::internal::RpcMethod method(method_name.c_str(),
+                                           grpc::internal::RpcMethod::CLIENT_STREAMING);
     grpc::ByteBuffer answer;
     std::unique_ptr<grpc::ClientWriter<grpc::ByteBuffer>> writer(
-        grpc::internal::ClientWriterFactory<grpc::ByteBuffer>::Create(channel_.get(), method, &ctx, &answer));
+        grpc::internal::ClientWriterFactory<grpc::ByteBuffer>::Create(channel_.get(), method, &ctx,
+                                                                      &answer));
     v1::UploadRequest fields;  // all but `data`
     fields.set_upload_id(upload_id);
     fields.set_filename(std::filesystem::path(path).filename().string());
@@ -256,7 +261,8 @@ v1::Cloud ServiceClient::UploadFile(const std::string& path, const ByteProgress&
             mapping->Populate(static_cast<std::size_t>(populated), kPopulateBytes);
             populated += kPopulateBytes;
         }
-        grpc::Slice data = mapping ? mapping->SliceOf(static_cast<std::size_t>(offset), n) : ReadSlice(fd, offset, n, path);
+        grpc::Slice data = mapping ? mapping->SliceOf(static_cast<std::size_t>(offset), n)
+                                   : ReadSlice(fd, offset, n, path);
         fields.set_write_offset(static_cast<std::int64_t>(offset));
         offset += n;
         fields.set_finish_write(offset >= total);

@@ -67,8 +67,11 @@ void OnSigbus(int sig, siginfo_t* info, void* context) {
         const char* begin = g_begin[i].load();
         if (begin && at >= begin && at < g_end[i].load()) {
             const auto page = static_cast<std::uintptr_t>(::sysconf(_SC_PAGESIZE));
-            void* lost = reinterpret_cast<void*>(reinterpret_cast<std::uintptr_t>(at) / page * page);
-            if (::mmap(lost, page, PROT_READ, MAP_PRIVATE | MAP_ANONYMOUS | MAP_FIXED, -1, 0) != MAP_FAILED) return;
+            void* lost =
+                reinterpret_cast<void*>(reinterpret_cast<std::uintptr_t>(at) / page * page);
+            if (::mmap(lost, page, PROT_READ, MAP_PRIVATE | MAP_ANONYMOUS | MAP_FIXED, -1, 0) !=
+                MAP_FAILED)
+                return;
         }
     }
     if (g_previous.sa_flags & SA_SIGINFO) {
@@ -136,7 +139,7 @@ grpc::ByteBuffer UploadMessage(const v1::UploadRequest& fields, grpc::Slice data
     grpc::Slice parts[2];
     if (n > 0) {
         head.push_back(static_cast<char>((4 << 3) | 2));  // field 4, wire type 2
-        for (std::uint64_t v = n; ; v >>= 7) {             // its length, a varint
+        for (std::uint64_t v = n;; v >>= 7) {             // its length, a varint
             if (v < 0x80) {
                 head.push_back(static_cast<char>(v));
                 break;
@@ -154,7 +157,8 @@ void FileMapping::Populate(std::size_t offset, std::size_t n) const {
     static const std::size_t page = static_cast<std::size_t>(::sysconf(_SC_PAGESIZE));
     if (offset >= size_) return;
     const std::size_t begin = offset / page * page;
-    ::madvise(const_cast<char*>(data_ + begin), std::min(size_, offset + n) - begin, MADV_POPULATE_READ);
+    ::madvise(const_cast<char*>(data_ + begin), std::min(size_, offset + n) - begin,
+              MADV_POPULATE_READ);
 #else
     (void)offset;
     (void)n;
@@ -184,7 +188,8 @@ bool HashMappedBytes(worker::Sha256& hash, const char* data, std::size_t n) {
 #endif
         for (std::size_t page = at; page < end; page += kStep) {
             const std::size_t ahead_end = std::min(n, page + kAhead + kStep);
-            for (std::size_t line = page + kAhead; line < ahead_end; line += 64) __builtin_prefetch(data + line);
+            for (std::size_t line = page + kAhead; line < ahead_end; line += 64)
+                __builtin_prefetch(data + line);
             hash.Update(std::string_view(data + page, std::min(kStep, end - page)));
         }
     }

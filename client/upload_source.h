@@ -25,7 +25,7 @@ namespace surfel::client {
 /// it hold a reference; the last one unmaps. Slices outlive the upload call inside gRPC at
 /// times (a transport frees them on its own thread), hence the count.
 class FileMapping {
-public:
+  public:
     /// Maps the file open on `fd` (`size` bytes, from its fstat). Null when it cannot be mapped
     /// (a pipe, a special file, an empty file, mmap refused, 64 mappings live): the caller reads
     /// instead. A page lost to truncation reads as zeros outside HashMappedBytes (no SIGBUS).
@@ -44,7 +44,7 @@ public:
     void Ref() { refs_.fetch_add(1, std::memory_order_relaxed); }
     void Unref();
 
-private:
+  private:
     FileMapping(const char* data, std::size_t size) : data_(data), size_(size) {}
     ~FileMapping();
     static void ReleaseSlice(void* mapping);

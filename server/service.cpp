@@ -43,7 +43,8 @@ Caller SurfelService::Authenticate(const grpc::CallbackServerContext* ctx) const
 grpc::ServerReadReactor<grpc::ByteBuffer>* SurfelService::Upload(grpc::CallbackServerContext* ctx,
                                                                  grpc::ByteBuffer* response) {
     return Authenticated<grpc::ServerReadReactor<grpc::ByteBuffer>>(
-        *this, ctx, [&](const Caller& caller) { return NewUploadReactor(*this, caller, response); });
+        *this, ctx,
+        [&](const Caller& caller) { return NewUploadReactor(*this, caller, response); });
 }
 
 grpc::ServerWriteReactor<v1::JobEvent>* SurfelService::Watch(grpc::CallbackServerContext* ctx,

@@ -75,7 +75,8 @@ class UploadReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> {
             std::lock_guard lock(mu_);
             if (ended_) return;  // the writer ended the call; this read failed or came after
             Message m;
-            // A message that is not an UploadRequest is a failed read, as gRPC's own parse makes it.
+            // A message that is not an UploadRequest is a failed read, as gRPC's own parse makes
+            // it.
             if (ok) ok = ParseUploadMessage(request_, &m.fields, &m.data, &m.size);
             request_.Clear();  // the chunk's slices are m's now
             const std::size_t bytes = ok ? m.size : 0;
@@ -331,7 +332,8 @@ class UploadReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> {
             status = CurrentExceptionStatus();
         }
         if (status.ok() && cancelled_.load())
-            spdlog::info("upload {}: the caller went away; cloud {} is stored anyway", Id(), cloud.id());
+            spdlog::info("upload {}: the caller went away; cloud {} is stored anyway", Id(),
+                         cloud.id());
         Done(status);
     }
 
@@ -447,10 +449,11 @@ class WireCursor {
 };
 
 // The whole message parsed by protobuf, its chunk copied into one slice.
-bool ParseWhole(const std::vector<grpc::Slice>& slices, v1::UploadRequest* fields, std::vector<grpc::Slice>* data,
-                std::size_t* data_size) {
+bool ParseWhole(const std::vector<grpc::Slice>& slices, v1::UploadRequest* fields,
+                std::vector<grpc::Slice>* data, std::size_t* data_size) {
     std::string bytes;
-    for (const grpc::Slice& s : slices) bytes.append(reinterpret_cast<const char*>(s.begin()), s.size());
+    for (const grpc::Slice& s : slices)
+        bytes.append(reinterpret_cast<const char*>(s.begin()), s.size());
     if (!fields->ParseFromString(bytes)) return false;
     data->clear();
     *data_size = fields->data().size();
@@ -480,7 +483,8 @@ bool ParseUploadMessage(const grpc::ByteBuffer& message, v1::UploadRequest* fiel
         const int wire_type = static_cast<int>(tag & 7);
         if (field == kDataField && wire_type == 2) {
             std::uint64_t n;
-            if (seen_data || !in.Varint(&n) || n > in.left()) return ParseWhole(slices, fields, data, data_size);
+            if (seen_data || !in.Varint(&n) || n > in.left())
+                return ParseWhole(slices, fields, data, data_size);
             if (!in.Take(static_cast<std::size_t>(n), nullptr, data)) return false;
             *data_size = static_cast<std::size_t>(n);
             seen_data = true;
@@ -496,7 +500,8 @@ bool ParseUploadMessage(const grpc::ByteBuffer& message, v1::UploadRequest* fiel
                 if (!in.Take(8, &rest, nullptr)) return false;
                 break;
             case 2:
-                if (!in.Varint(&v, &rest) || v > in.left() || !in.Take(static_cast<std::size_t>(v), &rest, nullptr))
+                if (!in.Varint(&v, &rest) || v > in.left() ||
+                    !in.Take(static_cast<std::size_t>(v), &rest, nullptr))
                     return false;
                 break;
             case 5:
@@ -509,7 +514,8 @@ bool ParseUploadMessage(const grpc::ByteBuffer& message, v1::UploadRequest* fiel
     return fields->ParseFromString(rest);
 }
 
-grpc::ServerReadReactor<grpc::ByteBuffer>* NewUploadReactor(SurfelService& service, const Caller& caller,
+grpc::ServerReadReactor<grpc::ByteBuffer>* NewUploadReactor(SurfelService& service,
+                                                            const Caller& caller,
                                                             grpc::ByteBuffer* response) {
     return new UploadReactor(service, caller, response);
 }

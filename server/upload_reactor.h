@@ -12,7 +12,8 @@
 namespace surfel::server {
 
 /// A reactor for one Upload call; it deletes itself in OnDone. `response`: the Cloud, serialized.
-grpc::ServerReadReactor<grpc::ByteBuffer>* NewUploadReactor(SurfelService& service, const Caller& caller,
+grpc::ServerReadReactor<grpc::ByteBuffer>* NewUploadReactor(SurfelService& service,
+                                                            const Caller& caller,
                                                             grpc::ByteBuffer* response);
 
 /// An UploadRequest read from gRPC's raw message without copying its chunk: `fields` holds every

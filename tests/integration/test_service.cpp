@@ -16,12 +16,12 @@
 
 #include "server_process.h"
 #include "service_client.h"
-#include "surfel/base/shapes.h"
-#include "surfel/io/image.h"
 #include "surfel/base/error.h"
+#include "surfel/base/shapes.h"
 #include "surfel/io/cloud_io.h"
-#include "surfel/io/ply.h"
 #include "surfel/io/file_bytes.h"
+#include "surfel/io/image.h"
+#include "surfel/io/ply.h"
 #include "surfel/worker/sha256.h"
 
 namespace surfel {
@@ -191,7 +191,8 @@ TEST_F(ServiceTest, AFileTruncatedWhileUploadedIsAnErrorNotACrash) {
     {
         const std::string torus = ReadFileBytes(Path("torus.ply"));
         std::ofstream out(path, std::ios::binary);
-        for (int i = 0; i < 24; ++i) out.write(torus.data(), static_cast<std::streamsize>(torus.size()));
+        for (int i = 0; i < 24; ++i)
+            out.write(torus.data(), static_cast<std::streamsize>(torus.size()));
     }
     bool cut = false;
     EXPECT_THROW(c.UploadFile(path,

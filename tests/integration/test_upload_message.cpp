@@ -38,7 +38,8 @@ std::optional<v1::UploadRequest> Read(const grpc::ByteBuffer& buffer) {
     if (!ParseUploadMessage(buffer, &fields, &data, &size)) return std::nullopt;
     EXPECT_TRUE(fields.data().empty());
     std::string joined;
-    for (const grpc::Slice& s : data) joined.append(reinterpret_cast<const char*>(s.begin()), s.size());
+    for (const grpc::Slice& s : data)
+        joined.append(reinterpret_cast<const char*>(s.begin()), s.size());
     EXPECT_EQ(joined.size(), size);
     fields.set_data(joined);
     return fields;
@@ -82,7 +83,8 @@ TEST(ParseUploadMessage, ReadsProtobufsMessageWhereverGrpcCutIt) {
             ExpectAsProtobuf(bytes, {});
             // A cut at each of the first 64 bytes (inside tags, varints, the strings), in the
             // data, and 16 KiB pieces (HTTP/2 frames).
-            for (std::size_t c = 1; c < std::min<std::size_t>(bytes.size(), 64); ++c) ExpectAsProtobuf(bytes, {c});
+            for (std::size_t c = 1; c < std::min<std::size_t>(bytes.size(), 64); ++c)
+                ExpectAsProtobuf(bytes, {c});
             std::vector<std::size_t> frames;
             for (std::size_t c = 16384; c < bytes.size(); c += 16384) frames.push_back(c);
             ExpectAsProtobuf(bytes, frames);
@@ -111,11 +113,12 @@ TEST(ParseUploadMessage, ReadsTheClientsMessagesWithDataLast) {
 
 TEST(ParseUploadMessage, DataTwiceUnknownFieldsAndGroupsAsProtobuf) {
     const v1::UploadRequest a = Request(300, true), b = Request(77, false);
-    ExpectAsProtobuf(a.SerializeAsString() + b.SerializeAsString(), {5, 40, 400});  // the later data wins
+    ExpectAsProtobuf(a.SerializeAsString() + b.SerializeAsString(),
+                     {5, 40, 400});  // the later data wins
     std::string unknown = a.SerializeAsString();
-    unknown += std::string("\x38\x96\x01", 3);                 // field 7, varint 150
-    unknown += std::string("\x42\x03xyz", 5);                  // field 8, 3 bytes
-    unknown += std::string("\x4d\x01\x02\x03\x04", 5);         // field 9, fixed32
+    unknown += std::string("\x38\x96\x01", 3);                          // field 7, varint 150
+    unknown += std::string("\x42\x03xyz", 5);                           // field 8, 3 bytes
+    unknown += std::string("\x4d\x01\x02\x03\x04", 5);                  // field 9, fixed32
     unknown += std::string("\x51\x01\x02\x03\x04\x05\x06\x07\x08", 9);  // field 10, fixed64
     ExpectAsProtobuf(unknown, {});
     ExpectAsProtobuf(unknown, {unknown.size() - 3});
@@ -132,9 +135,10 @@ TEST(ParseUploadMessage, RefusesWhatProtobufRefuses) {
     std::string bytes = bad_utf8.SerializeAsString();
     bytes[bytes.find("ok")] = '\xff';  // upload_id is a proto3 string: UTF-8 only
     ExpectAsProtobuf(bytes, {});
-    ExpectAsProtobuf(std::string("\x00\x01", 2), {});               // field 0
-    ExpectAsProtobuf(std::string("\x22\xff\xff\xff\xff\x0f", 6), {}); // a length past the end
-    ExpectAsProtobuf(std::string("\x18\xff\xff\xff\xff\xff\xff\xff\xff\xff\xff\x01", 12), {});  // 11-byte varint
+    ExpectAsProtobuf(std::string("\x00\x01", 2), {});                  // field 0
+    ExpectAsProtobuf(std::string("\x22\xff\xff\xff\xff\x0f", 6), {});  // a length past the end
+    ExpectAsProtobuf(std::string("\x18\xff\xff\xff\xff\xff\xff\xff\xff\xff\xff\x01", 12),
+                     {});  // 11-byte varint
 }
 
 // Mutated messages (random bytes changed, cut at random): the same answer as protobuf's.
@@ -146,7 +150,8 @@ TEST(ParseUploadMessage, AgreesWithProtobufOnMutatedMessages) {
         for (int f = 0; f < flips; ++f) bytes[rng() % bytes.size()] = static_cast<char>(rng());
         if (rng() % 4 == 0) bytes.resize(rng() % bytes.size());
         std::vector<std::size_t> cuts;
-        for (std::size_t c = 1 + rng() % 7; c < bytes.size(); c += 1 + rng() % 50) cuts.push_back(c);
+        for (std::size_t c = 1 + rng() % 7; c < bytes.size(); c += 1 + rng() % 50)
+            cuts.push_back(c);
         SCOPED_TRACE(i);
         ExpectAsProtobuf(bytes, cuts);
     }

@@ -35,15 +35,17 @@ std::string Flatten(const grpc::ByteBuffer& buffer) {
     std::vector<grpc::Slice> slices;
     EXPECT_TRUE(buffer.Dump(&slices).ok());
     std::string out;
-    for (const grpc::Slice& s : slices) out.append(reinterpret_cast<const char*>(s.begin()), s.size());
+    for (const grpc::Slice& s : slices)
+        out.append(reinterpret_cast<const char*>(s.begin()), s.size());
     return out;
 }
 
 class UploadSource : public ::testing::Test {
-protected:
+  protected:
     void SetUp() override {
-        path_ = fs::temp_directory_path() / ("surfel-upload-source-" + std::to_string(::getpid()) + "-" +
-                                             ::testing::UnitTest::GetInstance()->current_test_info()->name());
+        path_ = fs::temp_directory_path() /
+                ("surfel-upload-source-" + std::to_string(::getpid()) + "-" +
+                 ::testing::UnitTest::GetInstance()->current_test_info()->name());
     }
     void TearDown() override {
         if (fd_ >= 0) ::close(fd_);
@@ -51,7 +53,8 @@ protected:
     }
     // Writes `bytes` to the test's file and opens it for reading.
     int Open(const std::string& bytes) {
-        std::ofstream(path_, std::ios::binary).write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
+        std::ofstream(path_, std::ios::binary)
+            .write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
         fd_ = ::open(path_.c_str(), O_RDONLY | O_CLOEXEC);
         EXPECT_GE(fd_, 0);
         return fd_;
@@ -62,9 +65,9 @@ protected:
 
 TEST_F(UploadSource, TheMessageParsesAsTheRequestSerializedWithItsData) {
     // Lengths at the varint's byte boundaries, and the client's 256 KiB and the server's 1 MiB.
-    for (const std::size_t n : {std::size_t{0}, std::size_t{1}, std::size_t{127}, std::size_t{128},
-                                std::size_t{16383}, std::size_t{16384}, std::size_t{256} << 10,
-                                std::size_t{1} << 20}) {
+    for (const std::size_t n :
+         {std::size_t{0}, std::size_t{1}, std::size_t{127}, std::size_t{128}, std::size_t{16383},
+          std::size_t{16384}, std::size_t{256} << 10, std::size_t{1} << 20}) {
         for (const bool first : {true, false}) {
             SCOPED_TRACE("n=" + std::to_string(n) + (first ? " first" : " later"));
             v1::UploadRequest fields;
@@ -130,7 +133,8 @@ TEST_F(UploadSource, ASliceKeepsTheMappingAfterItsOwnerLetsGo) {
     fd_ = -1;
     fs::remove(path_);
     ASSERT_EQ(s.size(), 300000u);
-    EXPECT_EQ(std::string(reinterpret_cast<const char*>(s.begin()), s.size()), bytes.substr(1 << 20, 300000));
+    EXPECT_EQ(std::string(reinterpret_cast<const char*>(s.begin()), s.size()),
+              bytes.substr(1 << 20, 300000));
 }
 
 }  // namespace
