@@ -1,9 +1,13 @@
 #include "service_client.h"
 
+#include <fcntl.h>
+#include <unistd.h>
+
+#include <algorithm>
 #include <atomic>
 #include <cerrno>
-#include <cstring>
 #include <chrono>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <optional>
@@ -12,6 +16,7 @@
 
 #include "surfel/base/error.h"
 #include "surfel/worker/sha256.h"
+#include "upload_source.h"
 
 namespace surfel::client {
 namespace {
@@ -114,14 +119,24 @@ v1::Cloud ServiceClient::GetCloud(const std::string& id) {
 // MiB), known at once, so that sending need not wait for the whole file's SHA-256. The same file,
 // unchanged, gets the same id, so a broken upload resumes; the cloud's id (the server's SHA-256)
 // is checked against the file's own at the end, which catches a file that changed meanwhile.
-std::string UploadFingerprint(const std::string& path, std::uint64_t size) {
+// `mapped`: the file's mapping when there is one (the same bytes, not read again).
+std::string UploadFingerprint(const std::string& path, std::uint64_t size,
+                              const FileMapping* mapped) {
     std::error_code ec;
     const auto mtime = std::filesystem::last_write_time(path, ec).time_since_epoch().count();
     worker::Sha256 h;
     const std::string head = std::to_string(size) + ":" + std::to_string(ec ? 0 : mtime) + ":";
     h.Update(head);
+    const std::size_t part = static_cast<std::size_t>(std::min<std::uint64_t>(size, 1 << 20));
+    if (mapped) {
+        const bool whole =
+            HashMappedBytes(h, mapped->data(), part) &&
+            (size <= part || HashMappedBytes(h, mapped->data() + (size - part), part));
+        if (!whole) throw std::runtime_error(path + ": shorter than its size while uploading");
+        return "f" + h.FinishHex().substr(0, 48);
+    }
     std::ifstream in(path, std::ios::binary);
-    std::string buf(std::min<std::uint64_t>(size, 1 << 20), '\0');
+    std::string buf(part, '\0');
     in.read(buf.data(), static_cast<std::streamsize>(buf.size()));
     h.Update(std::string_view(buf.data(), static_cast<std::size_t>(in.gcount())));
     if (size > buf.size()) {
@@ -133,9 +148,43 @@ std::string UploadFingerprint(const std::string& path, std::uint64_t size) {
     return "f" + h.FinishHex().substr(0, 48);
 }
 
+namespace {
+
+// A chunk read from a file that could not be mapped: one copy, into the slice gRPC sends.
+grpc::Slice ReadSlice(int fd, std::uint64_t offset, std::size_t n, const std::string& path) {
+    grpc::Slice s(n);
+    auto* p = const_cast<std::uint8_t*>(s.begin());
+    std::size_t got = 0;
+    while (got < n) {
+        const ssize_t r = ::pread(fd, p + got, n - got, static_cast<off_t>(offset + got));
+        if (r < 0 && errno == EINTR) continue;
+        if (r < 0) throw std::runtime_error(path + ": read failed (" + std::strerror(errno) + ")");
+        if (r == 0) throw std::runtime_error(path + ": shorter than its size while uploading");
+        got += static_cast<std::size_t>(r);
+    }
+    return s;
+}
+
+}  // namespace
+
 v1::Cloud ServiceClient::UploadFile(const std::string& path, const ByteProgress& progress, std::size_t chunk) {
+    channel_->GetState(true);  // connect while the file is opened and fingerprinted
     const std::uint64_t total = std::filesystem::file_size(path);
-    const std::string upload_id = UploadFingerprint(path, total);
+    const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
+    if (fd < 0) throw std::runtime_error(path + ": cannot open");
+    // The file mapped once (hasher and sender read it; nothing is read(2) or copied by us), or
+    // read chunk by chunk when it cannot be mapped. Slices of the mapping may outlive this call
+    // inside gRPC: each holds a reference.
+    struct Held {
+        int fd;
+        FileMapping* mapping;
+        ~Held() {
+            if (mapping) mapping->Unref();
+            ::close(fd);
+        }
+    } held{fd, FileMapping::Map(fd, total)};
+    FileMapping* const mapping = held.mapping;
+    const std::string upload_id = UploadFingerprint(path, total, mapping);
     std::uint64_t offset = 0;
     {
         v1::QueryUploadRequest req;
@@ -159,7 +208,14 @@ v1::Cloud ServiceClient::UploadFile(const std::string& path, const ByteProgress&
     std::atomic<std::uint64_t> sent{offset};
     std::thread hasher([&] {
         try {
-            sha = FileSha256(path);
+            if (mapping) {
+                worker::Sha256 h;
+                if (!HashMappedBytes(h, mapping->data(), mapping->size()))
+                    throw std::runtime_error(path + ": shorter than its size while uploading");
+                sha = h.FinishHex();
+            } else {
+                sha = FileSha256(path);
+            }
             v1::GetCloudRequest req;
             req.set_cloud_id(sha);
             v1::Cloud c;
@@ -170,6 +226,7 @@ v1::Cloud ServiceClient::UploadFile(const std::string& path, const ByteProgress&
             }
         } catch (const std::exception& e) {
             hash_error = e.what();
+            ctx.TryCancel();  // the file changed: stop sending it
         }
     });
     struct Join {
@@ -179,38 +236,50 @@ v1::Cloud ServiceClient::UploadFile(const std::string& path, const ByteProgress&
         }
     } join{hasher};
 
-    std::ifstream in(path, std::ios::binary);
-    if (!in) throw std::runtime_error(path + ": cannot open");
-    in.seekg(static_cast<std::streamoff>(offset));
-    v1::Cloud cloud;
-    auto writer = stub_->Upload(&ctx, &cloud);
-    v1::UploadRequest req;
-    req.set_upload_id(upload_id);
-    req.set_filename(std::filesystem::path(path).filename().string());
-    req.set_total_size(total);  // the server refuses at once what could never be stored
+    // The generated stub's Upload with raw messages (UploadMessage): the same RPC on the wire.
+    static const std::string method_name =
+        "/" + std::string(v1::Surfel::service_full_name()) + "/Upload";
+    const grpc::internal::RpcMethod method(method_name.c_str(),
+                                           grpc::internal::RpcMethod::CLIENT_STREAMING);
+    grpc::ByteBuffer answer;
+    std::unique_ptr<grpc::ClientWriter<grpc::ByteBuffer>> writer(
+        grpc::internal::ClientWriterFactory<grpc::ByteBuffer>::Create(channel_.get(), method, &ctx,
+                                                                      &answer));
+    v1::UploadRequest fields;  // all but `data`
+    fields.set_upload_id(upload_id);
+    fields.set_filename(std::filesystem::path(path).filename().string());
+    fields.set_total_size(total);  // the server refuses at once what could never be stored
     bool open = true;
+    constexpr std::uint64_t kPopulateBytes = 4u << 20;
+    std::uint64_t populated = 0;  // the sender's pages are mapped in up to here
     do {
-        // Read straight into the message's bytes (no copy of our own); gRPC serialises from it.
-        std::string* data = req.mutable_data();
-        data->resize(static_cast<std::size_t>(std::min<std::uint64_t>(chunk, total - offset)));
-        in.read(data->data(), static_cast<std::streamsize>(data->size()));
-        const auto n = static_cast<std::size_t>(in.gcount());
-        data->resize(n);
-        if (n == 0 && offset < total) throw std::runtime_error(path + ": shorter than its size while uploading");
-        req.set_write_offset(static_cast<std::int64_t>(offset));
+        const auto n = static_cast<std::size_t>(std::min<std::uint64_t>(chunk, total - offset));
+        // The sender maps its pages in 4 MiB at a time (the hasher maps its own; whichever is
+        // first does the work): sendmsg then copies without a page fault per 16 pages.
+        if (mapping && offset + n > populated) {
+            populated = std::max(populated, offset);
+            mapping->Populate(static_cast<std::size_t>(populated), kPopulateBytes);
+            populated += kPopulateBytes;
+        }
+        grpc::Slice data = mapping ? mapping->SliceOf(static_cast<std::size_t>(offset), n)
+                                   : ReadSlice(fd, offset, n, path);
+        fields.set_write_offset(static_cast<std::int64_t>(offset));
         offset += n;
-        req.set_finish_write(offset >= total);
+        fields.set_finish_write(offset >= total);
         sent.store(offset);
-        if (!writer->Write(req)) {
+        if (!writer->Write(UploadMessage(fields, std::move(data)))) {
             open = false;
             break;
         }
-        req.clear_filename();
-        req.clear_total_size();
+        fields.clear_filename();
+        fields.clear_total_size();
         if (progress) progress(offset, total);
     } while (offset < total);
     if (open) writer->WritesDone();
     const grpc::Status status = writer->Finish();
+    v1::Cloud cloud;
+    if (status.ok() && !grpc::SerializationTraits<v1::Cloud>::Deserialize(&answer, &cloud).ok())
+        throw std::runtime_error("Upload " + path + ": the server's answer is not a Cloud");
     hasher.join();
     if (!hash_error.empty()) throw std::runtime_error(hash_error);
     if (stored && !(status.ok() && cloud.id() == sha)) {  // cancelled: the server had it already

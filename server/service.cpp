@@ -40,10 +40,11 @@ Caller SurfelService::Authenticate(const grpc::CallbackServerContext* ctx) const
 
 // ---- Streaming calls: one reactor each, in its own file -------------------------------------
 
-grpc::ServerReadReactor<v1::UploadRequest>* SurfelService::Upload(grpc::CallbackServerContext* ctx,
-                                                                  v1::Cloud* response) {
-    return Authenticated<grpc::ServerReadReactor<v1::UploadRequest>>(
-        *this, ctx, [&](const Caller& caller) { return NewUploadReactor(*this, caller, response); });
+grpc::ServerReadReactor<grpc::ByteBuffer>* SurfelService::Upload(grpc::CallbackServerContext* ctx,
+                                                                 grpc::ByteBuffer* response) {
+    return Authenticated<grpc::ServerReadReactor<grpc::ByteBuffer>>(
+        *this, ctx,
+        [&](const Caller& caller) { return NewUploadReactor(*this, caller, response); });
 }
 
 grpc::ServerWriteReactor<v1::JobEvent>* SurfelService::Watch(grpc::CallbackServerContext* ctx,

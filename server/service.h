@@ -19,11 +19,15 @@ namespace surfel::server {
 /// `transfers` (optional) appends and hashes the chunks of Upload calls while gRPC's threads
 /// receive the next ones (upload_reactor.cpp), and reads and hashes the next chunk of a Download
 /// while gRPC's threads send the last (download_reactor.cpp); without it, both in the reactions.
-class SurfelService final : public v1::Surfel::CallbackService {
-public:
+class SurfelService final
+    : public v1::Surfel::WithRawCallbackMethod_Upload<v1::Surfel::CallbackService> {
+  public:
     explicit SurfelService(Operations& ops, Executor* transfers = nullptr) : ops_(ops), transfers_(transfers) {}
 
-    grpc::ServerReadReactor<v1::UploadRequest>* Upload(grpc::CallbackServerContext* ctx, v1::Cloud* response) override;
+    /// Upload reads gRPC's raw messages: the chunk's bytes stay in gRPC's receive slices, written
+    /// and hashed from there (upload_reactor.cpp, ParseUploadMessage); the answer is a Cloud.
+    grpc::ServerReadReactor<grpc::ByteBuffer>* Upload(grpc::CallbackServerContext* ctx,
+                                                      grpc::ByteBuffer* response) override;
     grpc::ServerUnaryReactor* QueryUpload(grpc::CallbackServerContext* ctx, const v1::QueryUploadRequest* req,
                                           v1::QueryUploadResponse* resp) override;
     grpc::ServerUnaryReactor* GetCloud(grpc::CallbackServerContext* ctx, const v1::GetCloudRequest* req,

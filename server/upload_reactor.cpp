@@ -56,16 +56,15 @@ using worker::CurrentExceptionStatus;
 // pending read then fails and ends the call; a queued task sees `cancelled_` and ends it at once,
 // keeping the committed bytes for a resume. Parsing has no cancel hook: a parse already running
 // completes and stores the cloud (the client's next attempt then finds it by its hash).
-class UploadReactor final : public grpc::ServerReadReactor<v1::UploadRequest> {
+class UploadReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> {
   public:
     // What the reader runs ahead of the writer at most (bytes of received, unappended chunks;
-    // messages): a bounded queue per upload, beside gRPC's own HTTP/2 window. The buffers of
-    // appended messages kept for later reads hold at most kAheadBytes too (stale bytes, not in
-    // flight).
+    // messages): a bounded queue per upload, beside gRPC's own HTTP/2 window. The chunks stay in
+    // gRPC's receive slices (ParseUploadMessage), written and hashed from there.
     static constexpr std::size_t kAheadBytes = 2u << 20;
     static constexpr std::size_t kAheadMessages = 16;
 
-    UploadReactor(SurfelService& service, const Caller& caller, v1::Cloud* response)
+    UploadReactor(SurfelService& service, const Caller& caller, grpc::ByteBuffer* response)
         : service_(service), caller_(caller), response_(response), writers_(service.transfers()) {
         StartRead(&request_);
     }
@@ -75,11 +74,16 @@ class UploadReactor final : public grpc::ServerReadReactor<v1::UploadRequest> {
         {
             std::lock_guard lock(mu_);
             if (ended_) return;  // the writer ended the call; this read failed or came after
-            const std::size_t bytes = ok ? request_.data().size() : 0;
-            bool last = !ok || request_.finish_write();
+            Message m;
+            // A message that is not an UploadRequest is a failed read, as gRPC's own parse makes
+            // it.
+            if (ok) ok = ParseUploadMessage(request_, &m.fields, &m.data, &m.size);
+            request_.Clear();  // the chunk's slices are m's now
+            const std::size_t bytes = ok ? m.size : 0;
+            bool last = !ok || m.fields.finish_write();
             std::exception_ptr refused;
             if (bytes > 0) {
-                if (reader_id_.empty()) reader_id_ = request_.upload_id();
+                if (reader_id_.empty()) reader_id_ = m.fields.upload_id();
                 try {
                     service_.ops().ReserveInflight(bytes, reader_id_);
                     reserved_ += bytes;
@@ -88,12 +92,7 @@ class UploadReactor final : public grpc::ServerReadReactor<v1::UploadRequest> {
                     last = true;
                 }
             }
-            queue_.push_back(Received{ok, std::move(request_), refused});
-            if (!spare_.empty()) {  // reuse a message's buffer (its capacity): no allocation per chunk
-                request_ = std::move(spare_.back());
-                spare_.pop_back();
-                spare_capacity_ -= request_.data().capacity();
-            }
+            queue_.push_back(Received{ok, std::move(m), refused});
             pending_bytes_ += bytes;
             ++pending_messages_;
             if (!last) {
@@ -113,9 +112,15 @@ class UploadReactor final : public grpc::ServerReadReactor<v1::UploadRequest> {
     void OnDone() override { delete this; }
 
   private:
+    // One UploadRequest: its fields but `data`, and the chunk in gRPC's slices.
+    struct Message {
+        v1::UploadRequest fields;
+        std::vector<grpc::Slice> data;
+        std::size_t size = 0;
+    };
     struct Received {
         bool ok = false;  // false: the read failed (the stream ended without finish_write)
-        v1::UploadRequest request;
+        Message request;
         std::exception_ptr refused;  // not counted in flight: ReserveInflight's error
     };
     using Task = void (UploadReactor::*)();
@@ -185,9 +190,9 @@ class UploadReactor final : public grpc::ServerReadReactor<v1::UploadRequest> {
     // Checks one message and appends its chunk. False when the call ended or a task took the
     // writer's turn (the final message: ingest; the first of a resumed upload: its hash, and
     // then current_ holds the message, moved out of `request`).
-    bool Take(v1::UploadRequest& request) {
+    bool Take(Message& request) {
         try {
-            Open(request);
+            Open(request.fields);
             CheckChunk(request);
         } catch (...) {
             Done(CurrentExceptionStatus());
@@ -205,7 +210,7 @@ class UploadReactor final : public grpc::ServerReadReactor<v1::UploadRequest> {
     // reactor gives that message (its checks first, then the in-flight limit at its Append).
     void Refuse(const Received& m) {
         try {
-            Open(m.request);
+            Open(m.request.fields);
             CheckChunk(m.request);
             std::rethrow_exception(m.refused);
         } catch (...) {
@@ -226,7 +231,8 @@ class UploadReactor final : public grpc::ServerReadReactor<v1::UploadRequest> {
 
     // Checks a message against the upload's state (cheap: a refused resume is answered before
     // anything is hashed).
-    void CheckChunk(const v1::UploadRequest& request) {
+    void CheckChunk(const Message& message) {
+        const v1::UploadRequest& request = message.fields;
         if (!request.upload_id().empty() && request.upload_id() != session_->id())
             throw Error(ErrorCode::kInvalidArgument, "upload_id: changed within one call");
         if (request.write_offset() != static_cast<std::int64_t>(session_->committed()))
@@ -236,27 +242,31 @@ class UploadReactor final : public grpc::ServerReadReactor<v1::UploadRequest> {
                             std::to_string(session_->committed()) + " of upload " + session_->id() +
                             " (QueryUpload tells)");
         const std::size_t max_chunk = service_.limits().max_chunk_bytes;
-        if (request.data().size() > max_chunk)
+        if (message.size > max_chunk)
             throw Error(ErrorCode::kInvalidArgument,
                         "data: a chunk holds at most " + std::to_string(max_chunk) + " bytes");
         if (request.total_size() != 0) session_->ExpectSize(request.total_size());
-        session_->CheckFits(request.data().size());
+        session_->CheckFits(message.size);
     }
 
     // Appends the message's chunk (a bounded write: the page cache absorbs it). After the final
     // message, ingests (here when on the ingest Executor already) and returns false.
-    bool Accept(const v1::UploadRequest& request, bool on_executor) {
+    bool Accept(const Message& request, bool on_executor) {
         {
             std::lock_guard lock(mu_);
-            reserved_ -= request.data().size();  // Append takes the count over
+            reserved_ -= request.size;  // Append takes the count over
         }
         try {
-            session_->Append(request.data());
+            std::vector<std::string_view> pieces;
+            pieces.reserve(request.data.size());
+            for (const grpc::Slice& s : request.data)
+                pieces.emplace_back(reinterpret_cast<const char*>(s.begin()), s.size());
+            session_->Append(pieces);
         } catch (...) {
             Done(CurrentExceptionStatus());
             return false;
         }
-        if (!request.finish_write()) return true;
+        if (!request.fields.finish_write()) return true;
         if (on_executor)
             IngestTask();
         else
@@ -264,17 +274,13 @@ class UploadReactor final : public grpc::ServerReadReactor<v1::UploadRequest> {
         return false;
     }
 
-    // A message appended: it no longer counts against the reader's lead, and its buffer is
-    // kept for a later read; a paused reader reads again.
-    void Appended(v1::UploadRequest&& request) {
+    // A message appended: it no longer counts against the reader's lead (its slices go back to
+    // gRPC); a paused reader reads again.
+    void Appended(Message&& request) {
+        const Message done = std::move(request);
         std::lock_guard lock(mu_);
-        pending_bytes_ -= request.data().size();
+        pending_bytes_ -= done.size;
         --pending_messages_;
-        const std::size_t capacity = request.data().capacity();
-        if (spare_.size() < kAheadMessages && spare_capacity_ + capacity <= kAheadBytes) {
-            spare_capacity_ += capacity;
-            spare_.push_back(std::move(request));
-        }
         ResumeReaderLocked();
     }
 
@@ -302,7 +308,7 @@ class UploadReactor final : public grpc::ServerReadReactor<v1::UploadRequest> {
             Done(CurrentExceptionStatus());
             return;
         }
-        v1::UploadRequest request = std::move(*current_);
+        Message request = std::move(*current_);
         current_.reset();
         if (!Accept(request, true)) return;
         Appended(std::move(request));
@@ -317,14 +323,17 @@ class UploadReactor final : public grpc::ServerReadReactor<v1::UploadRequest> {
             return;
         }
         grpc::Status status;
+        v1::Cloud cloud;
         try {
-            *response_ = session_->Finish();
+            cloud = session_->Finish();
+            bool own = false;
+            status = grpc::SerializationTraits<v1::Cloud>::Serialize(cloud, response_, &own);
         } catch (...) {
             status = CurrentExceptionStatus();
         }
         if (status.ok() && cancelled_.load())
             spdlog::info("upload {}: the caller went away; cloud {} is stored anyway", Id(),
-                         response_->id());
+                         cloud.id());
         Done(status);
     }
 
@@ -353,17 +362,15 @@ class UploadReactor final : public grpc::ServerReadReactor<v1::UploadRequest> {
 
     SurfelService& service_;
     Caller caller_;
-    v1::Cloud* response_;
+    grpc::ByteBuffer* response_;  // the Cloud, serialized
     Executor* const writers_;  // null: the writer runs inline in OnReadDone
     std::atomic<bool> cancelled_{false};
 
     // The reader's: the message being read (while a read is outstanding, gRPC's).
-    v1::UploadRequest request_;
+    grpc::ByteBuffer request_;
 
     std::mutex mu_;  // guards what follows, between the reader and the writer
     std::deque<Received> queue_;
-    std::vector<v1::UploadRequest> spare_;  // appended messages, their buffers kept for reads
-    std::size_t spare_capacity_ = 0;         // of spare_'s chunks, at most kAheadBytes
     std::size_t pending_bytes_ = 0;          // chunks received and not yet appended
     std::uint64_t reserved_ = 0;             // of those, counted in flight and not yet appended
     std::string reader_id_;                  // the first message's upload_id (the reader's)
@@ -376,14 +383,140 @@ class UploadReactor final : public grpc::ServerReadReactor<v1::UploadRequest> {
     // The writer's (whoever holds its turn).
     std::string upload_id_;
     std::unique_ptr<UploadSession> session_;
-    std::optional<v1::UploadRequest> current_;  // the first chunk of a resume, while hashing
+    std::optional<Message> current_;  // the first chunk of a resume, while hashing
 };
 
 }  // namespace
 
-grpc::ServerReadReactor<v1::UploadRequest>* NewUploadReactor(SurfelService& service,
-                                                             const Caller& caller,
-                                                             v1::Cloud* response) {
+// ---- Reading an UploadRequest without copying its chunk --------------------------------------
+
+namespace {
+
+// A cursor over a message's slices (protobuf's wire format: varints, fixed and length-delimited
+// values, any of them split between slices).
+class WireCursor {
+  public:
+    explicit WireCursor(const std::vector<grpc::Slice>& slices) : slices_(slices) { Skip(); }
+    bool done() const { return slice_ == slices_.size(); }
+    std::size_t left() const { return left_; }
+    void set_left(std::size_t n) { left_ = n; }
+
+    bool Byte(std::uint8_t* b) {
+        if (done()) return false;
+        *b = slices_[slice_].begin()[at_++];
+        --left_;
+        Skip();
+        return true;
+    }
+    // A varint of at most 10 bytes, its bytes appended to `raw` when given.
+    bool Varint(std::uint64_t* v, std::string* raw = nullptr) {
+        *v = 0;
+        for (int shift = 0; shift < 70; shift += 7) {
+            std::uint8_t b;
+            if (!Byte(&b)) return false;
+            if (raw) raw->push_back(static_cast<char>(b));
+            *v |= static_cast<std::uint64_t>(b & 0x7f) << shift;
+            if (!(b & 0x80)) return true;
+        }
+        return false;
+    }
+    // The next n bytes: appended to `raw` (copy) or as sub-slices to `out` (no copy).
+    bool Take(std::size_t n, std::string* raw, std::vector<grpc::Slice>* out) {
+        if (n > left_) return false;
+        while (n > 0) {
+            const grpc::Slice& s = slices_[slice_];
+            const std::size_t k = std::min(n, s.size() - at_);
+            if (raw) raw->append(reinterpret_cast<const char*>(s.begin()) + at_, k);
+            if (out) out->push_back(s.sub(at_, at_ + k));
+            at_ += k;
+            left_ -= k;
+            n -= k;
+            Skip();
+        }
+        return true;
+    }
+
+  private:
+    void Skip() {  // past the end of this slice (and empty ones)
+        while (slice_ < slices_.size() && at_ == slices_[slice_].size()) {
+            ++slice_;
+            at_ = 0;
+        }
+    }
+    const std::vector<grpc::Slice>& slices_;
+    std::size_t slice_ = 0, at_ = 0;
+    std::size_t left_ = 0;
+};
+
+// The whole message parsed by protobuf, its chunk copied into one slice.
+bool ParseWhole(const std::vector<grpc::Slice>& slices, v1::UploadRequest* fields,
+                std::vector<grpc::Slice>* data, std::size_t* data_size) {
+    std::string bytes;
+    for (const grpc::Slice& s : slices)
+        bytes.append(reinterpret_cast<const char*>(s.begin()), s.size());
+    if (!fields->ParseFromString(bytes)) return false;
+    data->clear();
+    *data_size = fields->data().size();
+    if (*data_size > 0) data->emplace_back(fields->data());
+    fields->clear_data();
+    return true;
+}
+
+}  // namespace
+
+bool ParseUploadMessage(const grpc::ByteBuffer& message, v1::UploadRequest* fields,
+                        std::vector<grpc::Slice>* data, std::size_t* data_size) {
+    constexpr std::uint64_t kDataField = 4;  // UploadRequest.data
+    std::vector<grpc::Slice> slices;
+    if (message.Valid() && !message.Dump(&slices).ok()) return false;
+    data->clear();
+    *data_size = 0;
+    WireCursor in(slices);
+    in.set_left(message.Valid() ? message.Length() : 0);
+    std::string rest;  // every field but data, as it came
+    bool seen_data = false;
+    while (!in.done()) {
+        std::uint64_t tag;
+        std::string tag_bytes;
+        if (!in.Varint(&tag, &tag_bytes)) return false;
+        const std::uint64_t field = tag >> 3;
+        const int wire_type = static_cast<int>(tag & 7);
+        if (field == kDataField && wire_type == 2) {
+            std::uint64_t n;
+            if (seen_data || !in.Varint(&n) || n > in.left())
+                return ParseWhole(slices, fields, data, data_size);
+            if (!in.Take(static_cast<std::size_t>(n), nullptr, data)) return false;
+            *data_size = static_cast<std::size_t>(n);
+            seen_data = true;
+            continue;
+        }
+        rest += tag_bytes;
+        std::uint64_t v;
+        switch (wire_type) {
+            case 0:
+                if (!in.Varint(&v, &rest)) return false;
+                break;
+            case 1:
+                if (!in.Take(8, &rest, nullptr)) return false;
+                break;
+            case 2:
+                if (!in.Varint(&v, &rest) || v > in.left() ||
+                    !in.Take(static_cast<std::size_t>(v), &rest, nullptr))
+                    return false;
+                break;
+            case 5:
+                if (!in.Take(4, &rest, nullptr)) return false;
+                break;
+            default:  // groups (3, 4), or not a wire type: protobuf decides
+                return ParseWhole(slices, fields, data, data_size);
+        }
+    }
+    return fields->ParseFromString(rest);
+}
+
+grpc::ServerReadReactor<grpc::ByteBuffer>* NewUploadReactor(SurfelService& service,
+                                                            const Caller& caller,
+                                                            grpc::ByteBuffer* response) {
     return new UploadReactor(service, caller, response);
 }
 

@@ -4,11 +4,13 @@
 #include <spdlog/spdlog.h>
 #include <sys/mman.h>
 #include <sys/stat.h>
+#include <sys/uio.h>
 #include <unistd.h>
 
 #include <algorithm>
 #include <cctype>
 #include <cerrno>
+#include <climits>
 #include <cstring>
 #include <filesystem>
 #include <fstream>
@@ -92,6 +94,29 @@ class MappedFile {
     const char* data_ = nullptr;
     std::size_t size_ = 0;
 };
+
+// Writes every piece, in order (writev, up to IOV_MAX at a time; short writes continued).
+// Returns 0 or the errno of the write that failed.
+int WriteAllPieces(int fd, const std::vector<std::string_view>& pieces) {
+    std::vector<iovec> iov;
+    iov.reserve(pieces.size());
+    for (const std::string_view piece : pieces)
+        if (!piece.empty()) iov.push_back({const_cast<char*>(piece.data()), piece.size()});
+    std::size_t first = 0;
+    while (first < iov.size()) {
+        const int count = static_cast<int>(std::min<std::size_t>(iov.size() - first, IOV_MAX));
+        const ssize_t n = ::writev(fd, iov.data() + first, count);
+        if (n < 0 && errno == EINTR) continue;
+        if (n < 0) return errno;
+        auto done = static_cast<std::size_t>(n);
+        while (first < iov.size() && done >= iov[first].iov_len) done -= iov[first++].iov_len;
+        if (done > 0) {  // a piece written in part: the rest of it next
+            iov[first].iov_base = static_cast<char*>(iov[first].iov_base) + done;
+            iov[first].iov_len -= done;
+        }
+    }
+    return 0;
+}
 
 // Joins a thread on every way out of a scope (a joinable std::thread must never be destroyed).
 struct Joiner {
@@ -229,22 +254,26 @@ void UploadSession::HashCommitted() {
     hashed_ = true;
 }
 
-void UploadSession::Append(std::string_view data) {
-    inflight_ += data.size();  // the transport's count, ours now
+void UploadSession::Append(std::string_view data) { Append(std::vector<std::string_view>{data}); }
+
+void UploadSession::Append(const std::vector<std::string_view>& pieces) {
+    std::size_t size = 0;
+    for (const std::string_view piece : pieces) size += piece.size();
+    inflight_ += size;  // the transport's count, ours now
     SURFEL_CHECK(hashed_, "Append before HashCommitted on upload " << id_);
-    CheckFits(data.size());
+    CheckFits(size);
     SURFEL_CHECK(fd_ >= 0, "Append after Finish or Discard on upload " << id_);
-    if (data.empty()) return;
-    if (total_ != 0 && committed_ + data.size() > total_)
+    if (size == 0) return;
+    if (total_ != 0 && committed_ + size > total_)
         throw Error(ErrorCode::kInvalidArgument, "data: upload " + id_ + " passes its total_size " +
                                                      std::to_string(total_) + " at byte " +
-                                                     std::to_string(committed_ + data.size()));
+                                                     std::to_string(committed_ + size));
     worker::Retention* retention = ops_.retention();
-    if (retention && prereserved_ >= data.size()) {
-        prereserved_ -= data.size();  // ExpectSize reserved it
+    if (retention && prereserved_ >= size) {
+        prereserved_ -= size;  // ExpectSize reserved it
     } else if (retention) {
         try {
-            retention->Reserve(data.size(), "upload " + id_, committed_ + data.size());
+            retention->Reserve(size, "upload " + id_, committed_ + size);
         } catch (const Error& e) {
             const std::uint64_t had = committed_;
             Discard();
@@ -252,12 +281,12 @@ void UploadSession::Append(std::string_view data) {
                                       " committed bytes were discarded: upload it again");
         }
     }
-    const int err = worker::WriteAll(fd_, data);
+    const int err = WriteAllPieces(fd_, pieces);
     if (err != 0) {
         // Nothing of this chunk stays; on a full disk the whole part file goes, and its space.
         if (::ftruncate(fd_, static_cast<off_t>(committed_)) != 0) {
         }
-        if (retention) retention->Release(data.size());
+        if (retention) retention->Release(size);
         const std::uint64_t had = committed_;
         const bool full = worker::IsDiskFull(err);
         if (full) Discard();
@@ -268,10 +297,12 @@ void UploadSession::Append(std::string_view data) {
                                     "it again"
                               : std::string()));
     }
-    hash_.Update(data);
-    committed_ += data.size();
-    if (scan_) scan_->Append(data);  // while the bytes are in the cache
-    ops_.metrics().AddBytesIn(data.size());
+    for (const std::string_view piece : pieces) {
+        hash_.Update(piece);
+        if (scan_) scan_->Append(piece);  // while the bytes are in the cache
+    }
+    committed_ += size;
+    ops_.metrics().AddBytesIn(size);
 #ifdef __linux__
     if (adopt_ && committed_ - writeback_from_ >= kWritebackBytes) {
         // Starts writeback of what has been written since the last call and returns: a hint

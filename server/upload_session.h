@@ -18,6 +18,7 @@
 #include <memory>
 #include <string>
 #include <string_view>
+#include <vector>
 
 #include "operations.h"
 #include "surfel/io/ply.h"
@@ -72,6 +73,9 @@ class UploadSession {
     ///   full (ENOSPC, EDQUOT): the part file is removed, freeing its space (upload again).
     /// A chunk is never half in the part file: a short write is truncated away.
     void Append(std::string_view data);
+    /// Appends one chunk given in pieces (a gRPC message's slices), as Append of their
+    /// concatenation: one writev, the same checks, never half in the part file.
+    void Append(const std::vector<std::string_view>& pieces);
     /// The whole file is here: a cloud the caller stored before is returned at once
     /// (deduplicated); one only other tenants stored is parsed as if new (the same answer and
     /// about the same time as a new file; the bytes are kept once on disk); otherwise

@@ -11,16 +11,17 @@
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
+#include <fstream>
 #include <thread>
 
 #include "server_process.h"
 #include "service_client.h"
-#include "surfel/base/shapes.h"
-#include "surfel/io/image.h"
 #include "surfel/base/error.h"
+#include "surfel/base/shapes.h"
 #include "surfel/io/cloud_io.h"
-#include "surfel/io/ply.h"
 #include "surfel/io/file_bytes.h"
+#include "surfel/io/image.h"
+#include "surfel/io/ply.h"
 #include "surfel/worker/sha256.h"
 
 namespace surfel {
@@ -177,6 +178,33 @@ TEST_F(ServiceTest, SameBytesAreStoredOnce) {
     std::size_t files = 0;
     for ([[maybe_unused]] const auto& e : fs::directory_iterator(data_ + "/clouds")) ++files;
     EXPECT_EQ(files, 1u);
+}
+
+// The client sends from a mapping of the file (client/upload_source.h): a file cut shorter while
+// it is sent ends the upload with an error (the hasher's, or the broken stream's), never SIGBUS,
+// and nothing is stored; the server still serves.
+TEST_F(ServiceTest, AFileTruncatedWhileUploadedIsAnErrorNotACrash) {
+    testing::ServerProcess server(data_);
+    ServiceClient c(server.target());
+    const std::string path = (fs::path(data_ + "-file") / "big.ply").string();
+    fs::create_directories(fs::path(path).parent_path());
+    {
+        const std::string torus = ReadFileBytes(Path("torus.ply"));
+        std::ofstream out(path, std::ios::binary);
+        for (int i = 0; i < 24; ++i)
+            out.write(torus.data(), static_cast<std::streamsize>(torus.size()));
+    }
+    bool cut = false;
+    EXPECT_THROW(c.UploadFile(path,
+                              [&](std::uint64_t, std::uint64_t) {
+                                  if (!cut) fs::resize_file(path, 100000);
+                                  cut = true;
+                              }),
+                 std::exception);
+    EXPECT_TRUE(cut);
+    EXPECT_FALSE(fs::exists(data_ + "/clouds") && !fs::is_empty(data_ + "/clouds"));
+    EXPECT_EQ(c.UploadFile(Path("sphere.ply")).points(), 5000u);
+    fs::remove_all(fs::path(path).parent_path());
 }
 
 TEST_F(ServiceTest, MalformedUploadIsInvalidArgumentAndTheServerStillServes) {
