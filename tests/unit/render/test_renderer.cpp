@@ -25,6 +25,21 @@ PointCloud Sphere() {
     return SampleShape(Shape::kSphere, o);
 }
 
+// Sphere() and, behind it, a square wall in the plane z = -2.5 facing it (`scale` wide, with
+// `points` samples): what shadow rays from the wall meet.
+PointCloud SphereBeforeWall(int points, float scale) {
+    PointCloud scene = Sphere();
+    ShapeOptions o;
+    o.points = points;
+    o.normals = true;
+    o.scale = scale;
+    PointCloud wall = SampleShape(Shape::kPlane, o);
+    for (auto& p : wall.positions) p.z() = -2.5f;
+    scene.positions.insert(scene.positions.end(), wall.positions.begin(), wall.positions.end());
+    scene.normals.insert(scene.normals.end(), wall.normals.begin(), wall.normals.end());
+    return scene;
+}
+
 // Analytic ray-sphere (unit sphere at the origin): the first t, or nullopt.
 std::optional<double> HitSphere(const Vec3d& o, const Vec3d& d) {
     const double b = o.dot(d), c = o.squaredNorm() - 1.0, disc = b * b - c;
@@ -100,15 +115,7 @@ TEST(Render, TiltedPlaneDepth) {
 }
 
 TEST(Render, PointBehindTheSphereIsInShadow) {
-    PointCloud scene = Sphere();
-    ShapeOptions o;
-    o.points = 40000;
-    o.normals = true;
-    o.scale = 3;
-    PointCloud wall = SampleShape(Shape::kPlane, o);  // z = -2.5 behind the sphere, facing it
-    for (auto& p : wall.positions) p.z() = -2.5f;
-    scene.positions.insert(scene.positions.end(), wall.positions.begin(), wall.positions.end());
-    scene.normals.insert(scene.normals.end(), wall.normals.begin(), wall.normals.end());
+    const PointCloud scene = SphereBeforeWall(40000, 3);
     RenderOptions opt;
     opt.camera.eye = {0, 0, 6};
     opt.camera.width = opt.camera.height = 48;
@@ -395,15 +402,7 @@ TEST(Render, ErrorInsideTheIntersectCallbackReachesTheCaller) {
 TEST(Render, ErrorInsideTheOccludedCallbackReachesTheCaller) {
     // The camera sits between the sphere and the wall behind it and sees only the wall; only the
     // shadow rays from the wall meet the sphere, in the occluded callback.
-    PointCloud scene = Sphere();
-    ShapeOptions o;
-    o.points = 20000;
-    o.normals = true;
-    o.scale = 2;
-    PointCloud wall = SampleShape(Shape::kPlane, o);
-    for (auto& p : wall.positions) p.z() = -2.5f;
-    scene.positions.insert(scene.positions.end(), wall.positions.begin(), wall.positions.end());
-    scene.normals.insert(scene.normals.end(), wall.normals.begin(), wall.normals.end());
+    const PointCloud scene = SphereBeforeWall(20000, 2);
     RenderOptions opt;
     opt.camera.eye = {0, 0, -1.2};
     opt.camera.target = {0, 0, -2.5};
@@ -550,15 +549,7 @@ TEST(RenderQuality, PreviewHitsTheSampledSphereWithinItsPrecisionAndItsNormalsWi
 TEST(RenderQuality, PreviewsFirstStageShadowRaysStillFindTheSphereBeforeTheWall) {
     // The wall behind the sphere of PointBehindTheSphereIsInShadow, seen from above, with shadow
     // rays in the first stage alone: the point in the sphere's shadow stays dark, a lit one lit.
-    PointCloud scene = Sphere();
-    ShapeOptions o;
-    o.points = 40000;
-    o.normals = true;
-    o.scale = 3;
-    PointCloud wall = SampleShape(Shape::kPlane, o);
-    for (auto& p : wall.positions) p.z() = -2.5f;
-    scene.positions.insert(scene.positions.end(), wall.positions.begin(), wall.positions.end());
-    scene.normals.insert(scene.normals.end(), wall.normals.begin(), wall.normals.end());
+    const PointCloud scene = SphereBeforeWall(40000, 3);
     RenderOptions opt;
     opt.camera.eye = {0, 5, 4};
     opt.camera.target = {0, 0, -2.5};
