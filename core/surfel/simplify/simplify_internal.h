@@ -72,7 +72,13 @@ Spread Analyze(const Moments& m);
     const double c11 = a00 * a22 - a02 * a02, c12 = a01 * a02 - a00 * a12, c22 = a00 * a11 - a01 * a01;
     const double det = a00 * c00 + a01 * c01 + a02 * c02;
     const double trace = a00 + a11 + a22, e2 = c00 + c11 + c22;
-    const Eigen::Vector3d g = b - a * mid;
+    // g = b - a mid, written out with Eigen's sums (SSE2: rows 0 and 1 as a packet, column by
+    // column, row 2 by its reduction tree; the same bits, checked against `b - a * mid`): Eigen's
+    // product read the matrix's columns back from the stack across two of its stores (session 18:
+    // a store-forwarding stall on a third of the pair fit's samples).
+    const Eigen::Vector3d g(b.x() - ((a00 * mid.x() + a01 * mid.y()) + a02 * mid.z()),
+                            b.y() - ((a01 * mid.x() + a11 * mid.y()) + a12 * mid.z()),
+                            b.z() - (a02 * mid.x() + (a12 * mid.y() + a22 * mid.z())));
     if (det > 0 && det > 1.01e-3 * trace * e2) {
         const double inv = 1.0 / det;
         return mid + inv * Eigen::Vector3d(c00 * g.x() + c01 * g.y() + c02 * g.z(),
