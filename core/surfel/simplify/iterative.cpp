@@ -129,21 +129,6 @@ struct PairFit {
     double planes;
 };
 
-// x . y and a y (a the quadric's symmetric matrix) written out, with the sums in the order of
-// Eigen's `x.dot(y)` and `a * y` (SSE2: a dot as a packet of the first two products, then the
-// third; a product's rows 0 and 1 as a packet, column by column, row 2 by its reduction tree; the
-// same bits, checked against Eigen on 2 M random cases). Session 18: Eigen's product read the
-// matrix's columns back from the stack across two of its stores, and the loads stalled on store
-// forwarding (a third of the pair fit's samples).
-inline double Dot3(const Eigen::Vector3d& x, const Eigen::Vector3d& y) {
-    return (x.x() * y.x() + x.y() * y.y()) + x.z() * y.z();
-}
-inline Eigen::Vector3d TimesA(const Quadric& q, const Eigen::Vector3d& y) {
-    const double* a = q.a;  // a00 a01 a02 a11 a12 a22
-    return {(a[0] * y.x() + a[1] * y.y()) + a[2] * y.z(), (a[1] * y.x() + a[3] * y.y()) + a[4] * y.z(),
-            a[2] * y.x() + (a[4] * y.y() + a[5] * y.z())};
-}
-
 PairFit FitPair(const Quadric& qu, const Quadric& qv, const Eigen::Vector3d& pu, const Eigen::Vector3d& pv) {
     Quadric q = qu;
     q += qv;
@@ -152,12 +137,12 @@ PairFit FitPair(const Quadric& qu, const Quadric& qv, const Eigen::Vector3d& pu,
     const Eigen::Vector3d mid = 0.5 * (pu + pv), e = pv - pu;
     Eigen::Vector3d x = MinimizeQuadric(a, b, mid);
     if ((x - mid).squaredNorm() > e.squaredNorm()) {
-        const Eigen::Vector3d ae = TimesA(q, e);
+        const Eigen::Vector3d ae = SymmetricTimes(q.a, e);
         const double a2 = Dot3(e, ae), b1 = 2.0 * (Dot3(pu, ae) - Dot3(b, e));
         const double t = a2 > 0 ? std::clamp(-b1 / (2.0 * a2), 0.0, 1.0) : 0.5;
         x = pu + t * e;
     }
-    const double err = std::max(0.0, Dot3(x, TimesA(q, x)) - 2.0 * Dot3(b, x) + q.c);
+    const double err = std::max(0.0, Dot3(x, SymmetricTimes(q.a, x)) - 2.0 * Dot3(b, x) + q.c);
     return {x, err, q.planes};
 }
 

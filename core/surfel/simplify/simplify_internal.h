@@ -54,6 +54,22 @@ struct Spread {
 };
 Spread Analyze(const Moments& m);
 
+/// x . y and a y for a symmetric 3x3 a given as a00 a01 a02 a11 a12 a22, written out with the
+/// sums in the order of Eigen's `x.dot(y)` and `a * y` on this build (SSE2: a dot as the packet of
+/// its first two products, then the third; a product's rows 0 and 1 as a packet, column by column,
+/// row 2 by its reduction tree; the same bits, checked against Eigen on 2 M random cases).
+/// Session 18: in the pair fit Eigen's product read the matrix's columns back from the stack
+/// across two of its stores, and the loads stalled on store forwarding (a third of the fit's
+/// samples). The iterative reference (tests) uses them too, so both keep the same numerics
+/// whatever the target's vector width.
+inline double Dot3(const Eigen::Vector3d& x, const Eigen::Vector3d& y) {
+    return (x.x() * y.x() + x.y() * y.y()) + x.z() * y.z();
+}
+inline Eigen::Vector3d SymmetricTimes(const double* a, const Eigen::Vector3d& y) {
+    return {(a[0] * y.x() + a[1] * y.y()) + a[2] * y.z(), (a[1] * y.x() + a[3] * y.y()) + a[4] * y.z(),
+            a[2] * y.x() + (a[4] * y.y() + a[5] * y.z())};
+}
+
 /// The minimiser of the quadric x^T a x - 2 b^T x (a symmetric, positive semi-definite) by a
 /// truncated pseudo-inverse around `mid`: the eigen-directions whose eigenvalue is at most 1e-3 of
 /// the largest stay at `mid` (iterative simplification, notes 2.2: the tangent directions of a
