@@ -137,11 +137,12 @@ PairFit FitPair(const Quadric& qu, const Quadric& qv, const Eigen::Vector3d& pu,
     const Eigen::Vector3d mid = 0.5 * (pu + pv), e = pv - pu;
     Eigen::Vector3d x = MinimizeQuadric(a, b, mid);
     if ((x - mid).squaredNorm() > e.squaredNorm()) {
-        const double a2 = e.dot(a * e), b1 = 2.0 * (pu.dot(a * e) - b.dot(e));
+        const Eigen::Vector3d ae = SymmetricTimes(q.a, e);
+        const double a2 = Dot3(e, ae), b1 = 2.0 * (Dot3(pu, ae) - Dot3(b, e));
         const double t = a2 > 0 ? std::clamp(-b1 / (2.0 * a2), 0.0, 1.0) : 0.5;
         x = pu + t * e;
     }
-    const double err = std::max(0.0, x.dot(a * x) - 2.0 * b.dot(x) + q.c);
+    const double err = std::max(0.0, Dot3(x, SymmetricTimes(q.a, x)) - 2.0 * Dot3(b, x) + q.c);
     return {x, err, q.planes};
 }
 
@@ -198,12 +199,21 @@ struct PairKey {
     }
 };
 
-/// A 4-ary min-heap of nodes by their best pair's key, with each node's position, so a key can
-/// move either way. A slot holds the cost and the lower index (16 bytes: a node's four children
-/// share one cache line); the rare ties on both read the higher index from the keys.
+/// A node's best pair (its key in the heap), the position of that pair's other end (`mate`) and
+/// the node's place in the heap, on one line (session 18: three arrays put them on three; a
+/// contraction reads or writes all three for each of its ~12 neighbours).
+struct alignas(32) NodeKey {
+    PairKey best;
+    std::uint32_t mate, pos;
+};
+static_assert(sizeof(NodeKey) == 32);
+
+/// A 4-ary min-heap of nodes by their best pair's key, with each node's position (NodeKey::pos),
+/// so a key can move either way. A slot holds the cost and the lower index (16 bytes: a node's four
+/// children share one cache line); the rare ties on both read the higher index from the keys.
 class NodeHeap {
 public:
-    explicit NodeHeap(std::span<const PairKey> key) : key_(key), pos_(key.size(), kNone) {}
+    explicit NodeHeap(std::span<NodeKey> key) : key_(key) {}
     void Build() {
         const std::size_t n = key_.size();
         // Room for the slots with (heap_ + 1) on a 64-byte boundary: children 4i+1..4i+4 share a line.
@@ -213,7 +223,7 @@ public:
         size_ = static_cast<std::uint32_t>(n);
         for (std::uint32_t i = 0; i < size_; ++i) {
             heap_[i] = SlotOf(i);
-            pos_[i] = i;
+            key_[i].pos = i;
         }
         // Floyd's bottom-up construction (a sorted array would put the two ends of each pair, which
         // share a key, next to each other, and every comparison between them reads their keys).
@@ -232,27 +242,26 @@ public:
             if (Less(heap_[j], heap_[m])) m = j;
         return heap_[m].node;
     }
-    /// Asks for node u's position (first wave) or its slot (second wave) ahead of an Update.
-    void PrefetchPosition(std::uint32_t u) const { __builtin_prefetch(&pos_[u]); }
+    /// Asks for node u's slot ahead of an Update (its key, with its position, asked for before).
     void PrefetchSlot(std::uint32_t u) const {
-        if (pos_[u] != kNone) __builtin_prefetch(heap_ + pos_[u]);
+        if (key_[u].pos != kNone) __builtin_prefetch(heap_ + key_[u].pos);
     }
     /// Re-sorts node u after its key changed.
     void Update(std::uint32_t u) {
-        const std::uint32_t i = pos_[u];
+        const std::uint32_t i = key_[u].pos;
         if (i == kNone) return;
         const Slot s = SlotOf(u);
         if (i > 0 && Less(s, heap_[(i - 1) / 4])) Up(i, s);
         else Down(i, s);
     }
     void Remove(std::uint32_t u) {
-        const std::uint32_t i = pos_[u];
+        const std::uint32_t i = key_[u].pos;
         if (i == kNone) return;
         const Slot last = heap_[--size_];
-        pos_[u] = kNone;
+        key_[u].pos = kNone;
         if (last.node == u) return;
         heap_[i] = last;
-        pos_[last.node] = i;
+        key_[last.node].pos = i;
         Update(last.node);
     }
 
@@ -261,11 +270,11 @@ private:
         double cost;
         std::uint32_t lo, node;
     };
-    Slot SlotOf(std::uint32_t u) const { return {key_[u].cost, key_[u].lo, u}; }
+    Slot SlotOf(std::uint32_t u) const { return {key_[u].best.cost, key_[u].best.lo, u}; }
     bool Less(const Slot& a, const Slot& b) const {
         if (a.cost != b.cost) return a.cost < b.cost;
         if (a.lo != b.lo) return a.lo < b.lo;
-        const std::uint32_t ha = key_[a.node].hi, hb = key_[b.node].hi;
+        const std::uint32_t ha = key_[a.node].best.hi, hb = key_[b.node].best.hi;
         if (ha != hb) return ha < hb;
         return a.node < b.node;  // (each pair is held at one end: two slots never share a key)
     }
@@ -274,11 +283,11 @@ private:
             const std::uint32_t p = (i - 1) / 4;
             if (!Less(s, heap_[p])) break;
             heap_[i] = heap_[p];
-            pos_[heap_[i].node] = i;
+            key_[heap_[i].node].pos = i;
             i = p;
         }
         heap_[i] = s;
-        pos_[s.node] = i;
+        key_[s.node].pos = i;
     }
     void Down(std::uint32_t i, const Slot& s) {
         for (;;) {
@@ -295,17 +304,16 @@ private:
                 if (Less(heap_[j], heap_[m])) m = j;
             if (!Less(heap_[m], s)) break;
             heap_[i] = heap_[m];
-            pos_[heap_[i].node] = i;
+            key_[heap_[i].node].pos = i;
             i = m;
         }
         heap_[i] = s;
-        pos_[s.node] = i;
+        key_[s.node].pos = i;
     }
-    std::span<const PairKey> key_;
+    std::span<NodeKey> key_;
     BigVector<Slot> storage_;
     Slot* heap_ = nullptr;
     std::uint32_t size_ = 0;
-    BigVector<std::uint32_t> pos_;
 };
 
 /// A spatial order of the points (Morton order of a 1024^3 grid over the bounding box, ties by
@@ -506,10 +514,10 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
     // by (cost, lower index, higher index), and a contraction repairs the best pair of only those
     // neighbours that are the lower end of a pair it changed (session 13: with each pair at both
     // ends, twice as many heap updates).
-    // mate[u]: the position of best[u]'s higher end (read beside best[u] at the start of a
-    // contraction, instead of after it from `at`: one miss fewer in the chain to the pair's nodes).
-    BigVector<PairKey> best(n);
-    BigVector<std::uint32_t> mate(n);
+    // keys[u]: u's best pair, the position of its higher end (`mate`, read beside the key at the
+    // start of a contraction instead of after it from `at`: one miss fewer in the chain to the
+    // pair's nodes) and u's place in the heap, on one line.
+    BigVector<NodeKey> keys(n);
     auto rescan = [&](std::uint32_t u, std::uint32_t self) {  // self = input_of[u]
         PairKey b;
         std::uint32_t m = kNone;
@@ -518,14 +526,14 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
             const PairKey key{pool[e].cost, self, pool[e].input};
             if (key < b) b = key, m = pool[e].id;
         }
-        best[u] = b;
-        mate[u] = m;
+        keys[u].best = b;
+        keys[u].mate = m;
     };
     tbb::parallel_for(tbb::blocked_range<std::uint32_t>(0, static_cast<std::uint32_t>(n), 4096),
                       [&](const tbb::blocked_range<std::uint32_t>& r) {
                           for (std::uint32_t i = r.begin(); i != r.end(); ++i) rescan(i, input_of[i]);
                       });
-    NodeHeap heap(best);
+    NodeHeap heap(keys);
     heap.Build();
     auto entry_of = [&](std::uint32_t w, std::uint32_t id) -> Entry* {
         for (std::uint32_t e = node[w].row.start; e < node[w].row.start + node[w].row.degree; ++e)
@@ -538,14 +546,14 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
     // u's own list holds the cost and its rescan after the contraction takes the pair into account.
     auto set_cost_at = [&](std::uint32_t w, std::uint32_t iw, std::uint32_t u, std::uint32_t iu, double cost,
                            std::uint32_t gone) {
-        const bool lost_best = gone != kNone && best[w].hi == gone;
+        const bool lost_best = gone != kNone && keys[w].best.hi == gone;
         if (iw < iu) {
             Entry* e = entry_of(w, u);
             SURFEL_CHECK(e != nullptr, "pair " << iu << "-" << iw << " missing at " << iw);
             e->cost = cost;
             const PairKey key{cost, iw, iu};
-            if (best[w].hi == iu || lost_best) rescan(w, iw);
-            else if (key < best[w]) best[w] = key, mate[w] = u;
+            if (keys[w].best.hi == iu || lost_best) rescan(w, iw);
+            else if (key < keys[w].best) keys[w].best = key, keys[w].mate = u;
             else return;
         } else if (lost_best) {
             rescan(w, iw);
@@ -565,8 +573,8 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
     const double total = target ? static_cast<double>(n - std::min(n, target)) : static_cast<double>(n);
     std::size_t since = 0;
     while (count > target && count > 1) {
-        const std::uint32_t top = heap.top(), top_mate = mate[top];  // both loads at once
-        if (best[top].cost == kNever) {
+        const std::uint32_t top = heap.top(), top_mate = keys[top].mate;  // both loads at once
+        if (keys[top].best.cost == kNever) {
             if (target == 0) break;  // error-bounded: no admissible contraction left
             // Components ran out of pairs before the target: connect the survivors by their k
             // nearest survivors (taken in input order).
@@ -610,12 +618,12 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
                 rescan(u, input_of[u]);
                 heap.Update(u);
             }
-            if (best[heap.top()].cost == kNever) break;  // nothing left to join (coincident points)
+            if (keys[heap.top()].best.cost == kNever) break;  // nothing left to join (coincident points)
             continue;
         }
         // Contract the best pair: v (the higher input index) into u.
         const std::uint32_t u = top, v = top_mate;  // the pair's lower end holds it
-        const std::uint32_t u_input = best[top].lo, v_input = best[top].hi;
+        const std::uint32_t u_input = keys[top].best.lo, v_input = keys[top].best.hi;
         // The loop waits on memory (each pair touches rows, quadrics and keys scattered over the
         // pool): ask for all of a contraction's lines at once, in two waves (a list's place, then
         // the list), while the pair's fit computes.
@@ -635,26 +643,31 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
         // contractions are the same whatever the guess.
         const std::uint32_t next = heap.RunnerUp();
         if (next != kNone) {
-            __builtin_prefetch(&best[next]);
-            __builtin_prefetch(&mate[next]);
+            __builtin_prefetch(&keys[next]);
             __builtin_prefetch(&node[next]);
             __builtin_prefetch(reinterpret_cast<const char*>(&node[next]) + 64);
         }
-        // The records, keys and heap places of x's and y's neighbours (a first wave).
-        auto prefetch_neighbours = [&](std::uint32_t x, std::uint32_t y) {
+        // The first line of the records (list place, mark) and the keys (heap place) of x's and y's
+        // neighbours, which the second wave reads; with `second_lines`, then the records' second
+        // lines (the quadrics' rest, read only by the cost loop). Session 18: the lines are asked
+        // for in the order they are needed: the memory system holds only so many requests, and a
+        // line asked for early but needed late holds up the ones needed first (the second wave
+        // waited on the first lines behind the second ones: the loop 637 -> 494 ms).
+        auto prefetch_neighbours = [&](std::uint32_t x, std::uint32_t y, bool second_lines) {
             for (const std::uint32_t z : {x, y})
                 for (std::uint32_t e = node[z].row.start; e < node[z].row.start + node[z].row.degree; ++e) {
                     const std::uint32_t w = pool[e].id;
                     __builtin_prefetch(&node[w]);
-                    __builtin_prefetch(reinterpret_cast<const char*>(&node[w]) + 64);
-                    __builtin_prefetch(&best[w]);
-                    __builtin_prefetch(&mate[w]);
-                    heap.PrefetchPosition(w);
+                    __builtin_prefetch(&keys[w]);
                 }
+            if (!second_lines) return;
+            for (const std::uint32_t z : {x, y})
+                for (std::uint32_t e = node[z].row.start; e < node[z].row.start + node[z].row.degree; ++e)
+                    __builtin_prefetch(reinterpret_cast<const char*>(&node[pool[e].id]) + 64);
         };
         const PairFit f = fit(u, v, u_input, v_input);
-        prefetch_neighbours(u, v);
-        const std::uint32_t next_mate = next != kNone ? mate[next] : kNone;
+        prefetch_neighbours(u, v, false);
+        const std::uint32_t next_mate = next != kNone ? keys[next].mate : kNone;
         if (next_mate < n) {
             __builtin_prefetch(&node[next_mate]);
             __builtin_prefetch(reinterpret_cast<const char*>(&node[next_mate]) + 64);
@@ -665,9 +678,14 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
         alive[v] = 0;
         parent[v] = u;
         heap.Remove(v);
+        // The second wave: the neighbours' lists (the merge below reads them), then their records'
+        // second lines and heap slots (the cost loop after it).
+        for (const std::uint32_t x : {u, v})
+            for (std::uint32_t e = node[x].row.start; e < node[x].row.start + node[x].row.degree; ++e)
+                prefetch_row(pool[e].id);
         for (const std::uint32_t x : {u, v})
             for (std::uint32_t e = node[x].row.start; e < node[x].row.start + node[x].row.degree; ++e) {
-                prefetch_row(pool[e].id);
+                __builtin_prefetch(reinterpret_cast<const char*>(&node[pool[e].id]) + 64);
                 heap.PrefetchSlot(pool[e].id);
             }
 
@@ -714,7 +732,7 @@ Clustering IterativeSimplification(std::span<const Vec3f> points, std::span<cons
             pool[node[u].row.start + j] = {cost, w, merged[j].input};
             set_cost_at(w, merged[j].input, u, u_input, cost, v_input);
         }
-        if (next_mate < n && next != v && next_mate != v) prefetch_neighbours(next, next_mate);  // the next pair's
+        if (next_mate < n && next != v && next_mate != v) prefetch_neighbours(next, next_mate, true);  // the next pair's
         rescan(u, u_input);
         heap.Update(u);
         --count;

@@ -54,6 +54,22 @@ struct Spread {
 };
 Spread Analyze(const Moments& m);
 
+/// x . y and a y for a symmetric 3x3 a given as a00 a01 a02 a11 a12 a22, written out with the
+/// sums in the order of Eigen's `x.dot(y)` and `a * y` on this build (SSE2: a dot as the packet of
+/// its first two products, then the third; a product's rows 0 and 1 as a packet, column by column,
+/// row 2 by its reduction tree; the same bits, checked against Eigen on 2 M random cases).
+/// Session 18: in the pair fit Eigen's product read the matrix's columns back from the stack
+/// across two of its stores, and the loads stalled on store forwarding (a third of the fit's
+/// samples). The iterative reference (tests) uses them too, so both keep the same numerics
+/// whatever the target's vector width.
+inline double Dot3(const Eigen::Vector3d& x, const Eigen::Vector3d& y) {
+    return (x.x() * y.x() + x.y() * y.y()) + x.z() * y.z();
+}
+inline Eigen::Vector3d SymmetricTimes(const double* a, const Eigen::Vector3d& y) {
+    return {(a[0] * y.x() + a[1] * y.y()) + a[2] * y.z(), (a[1] * y.x() + a[3] * y.y()) + a[4] * y.z(),
+            a[2] * y.x() + (a[4] * y.y() + a[5] * y.z())};
+}
+
 /// The minimiser of the quadric x^T a x - 2 b^T x (a symmetric, positive semi-definite) by a
 /// truncated pseudo-inverse around `mid`: the eigen-directions whose eigenvalue is at most 1e-3 of
 /// the largest stay at `mid` (iterative simplification, notes 2.2: the tangent directions of a
@@ -63,13 +79,22 @@ Spread Analyze(const Moments& m);
 /// when they prove that only the largest passes, its eigenpair alone (found without the solve).
 /// Otherwise (creases: two eigenvalues pass, or too close to the 1e-3 line to tell) Eigen's
 /// direct 3x3 solve. The shortcuts agree with the solve to rounding, not to the bit.
-inline Eigen::Vector3d MinimizeQuadric(const Eigen::Matrix3d& a, const Eigen::Vector3d& b, const Eigen::Vector3d& mid) {
+/// Always inlined (session 18): called, the pair fit's matrix went through the stack, and its
+/// 16-byte loads of 8-byte stores stalled on store forwarding (the loop ~3 % faster inlined; the
+/// same arithmetic, the same bits).
+[[gnu::always_inline]] inline Eigen::Vector3d MinimizeQuadric(const Eigen::Matrix3d& a, const Eigen::Vector3d& b, const Eigen::Vector3d& mid) {
     const double a00 = a(0, 0), a01 = a(0, 1), a02 = a(0, 2), a11 = a(1, 1), a12 = a(1, 2), a22 = a(2, 2);
     const double c00 = a11 * a22 - a12 * a12, c01 = a02 * a12 - a01 * a22, c02 = a01 * a12 - a02 * a11;
     const double c11 = a00 * a22 - a02 * a02, c12 = a01 * a02 - a00 * a12, c22 = a00 * a11 - a01 * a01;
     const double det = a00 * c00 + a01 * c01 + a02 * c02;
     const double trace = a00 + a11 + a22, e2 = c00 + c11 + c22;
-    const Eigen::Vector3d g = b - a * mid;
+    // g = b - a mid, written out with Eigen's sums (SSE2: rows 0 and 1 as a packet, column by
+    // column, row 2 by its reduction tree; the same bits, checked against `b - a * mid`): Eigen's
+    // product read the matrix's columns back from the stack across two of its stores (session 18:
+    // a store-forwarding stall on a third of the pair fit's samples).
+    const Eigen::Vector3d g(b.x() - ((a00 * mid.x() + a01 * mid.y()) + a02 * mid.z()),
+                            b.y() - ((a01 * mid.x() + a11 * mid.y()) + a12 * mid.z()),
+                            b.z() - (a02 * mid.x() + (a12 * mid.y() + a22 * mid.z())));
     if (det > 0 && det > 1.01e-3 * trace * e2) {
         const double inv = 1.0 / det;
         return mid + inv * Eigen::Vector3d(c00 * g.x() + c01 * g.y() + c02 * g.z(),

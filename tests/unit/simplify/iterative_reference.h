@@ -8,6 +8,7 @@
 #include <Eigen/Core>
 #include <Eigen/Eigenvalues>
 #include <algorithm>
+#include <array>
 #include <map>
 #include <queue>
 #include <vector>
@@ -36,7 +37,13 @@ inline std::vector<Vec3f> IterativeSimplify(std::span<const Vec3f> points, std::
             c += o.c;
             planes += o.planes;
         }
-        double Evaluate(const Eigen::Vector3d& x) const { return std::max(0.0, x.dot(a * x) - 2.0 * b.dot(x) + c); }
+        // The products and dots as the implementation writes them out (detail::Dot3,
+        // SymmetricTimes: Eigen's sums on SSE2, the same on every target).
+        std::array<double, 6> Upper() const { return {a(0, 0), a(0, 1), a(0, 2), a(1, 1), a(1, 2), a(2, 2)}; }
+        Eigen::Vector3d Times(const Eigen::Vector3d& y) const { return detail::SymmetricTimes(Upper().data(), y); }
+        double Evaluate(const Eigen::Vector3d& x) const {
+            return std::max(0.0, detail::Dot3(x, Times(x)) - 2.0 * detail::Dot3(b, x) + c);
+        }
         // The minimiser is the implementation's (its numerics are not what this reference checks).
         Eigen::Vector3d Minimize(const Eigen::Vector3d& m) const { return detail::MinimizeQuadric(a, b, m); }
     };
@@ -85,7 +92,8 @@ inline std::vector<Vec3f> IterativeSimplify(std::span<const Vec3f> points, std::
         const Eigen::Vector3d mid = 0.5 * (pos[u] + pos[v]), e = pos[v] - pos[u];
         Eigen::Vector3d x = s.Minimize(mid);
         if ((x - mid).squaredNorm() > e.squaredNorm()) {
-            const double a2 = e.dot(s.a * e), b1 = 2.0 * (pos[u].dot(s.a * e) - s.b.dot(e));
+            const Eigen::Vector3d ae = s.Times(e);
+            const double a2 = detail::Dot3(e, ae), b1 = 2.0 * (detail::Dot3(pos[u], ae) - detail::Dot3(s.b, e));
             const double t = a2 > 0 ? std::clamp(-b1 / (2.0 * a2), 0.0, 1.0) : 0.5;
             x = pos[u] + t * e;
         }
