@@ -47,6 +47,41 @@ std::optional<double> HitSphere(const Vec3d& o, const Vec3d& d) {
     return -b - std::sqrt(disc);
 }
 
+// A render of the unit sphere (the camera on the z axis, looking at the origin) against the
+// analytic sphere, over the pixels more than one pixel from the silhouette: mask errors, the worst
+// depth and the worst normal angle (degrees). `each(x, y, hit)` sees every such pixel.
+struct SphereCheck {
+    int checked = 0, mask_errors = 0;
+    double worst_depth = 0, worst_angle = 0;
+};
+SphereCheck CheckAgainstUnitSphere(const Image& img, const Camera& camera,
+                                   const std::function<void(int, int, bool)>& each = {}) {
+    const double distance = camera.eye.norm();
+    const double pixel_angle = camera.fovy_deg / camera.height * M_PI / 180;  // one pixel, in radians at the eye
+    SphereCheck c;
+    for (int y = 0; y < camera.height; ++y)
+        for (int x = 0; x < camera.width; ++x) {
+            const Vec3d d = camera.Direction(x + 0.5, y + 0.5);
+            const auto t = HitSphere(camera.eye, d);
+            // Distance of the ray from the silhouette, in pixels (rays within one pixel are exempt).
+            const double closest = (camera.eye - camera.eye.dot(d) * d).norm();
+            const double silhouette_px =
+                std::abs(std::asin(std::min(1.0, closest / distance)) - std::asin(1.0 / distance)) / pixel_angle;
+            if (silhouette_px <= 1.0) continue;
+            ++c.checked;
+            const bool hit = img.At(x, y, 3) > 0.5f;
+            if (hit != t.has_value()) ++c.mask_errors;
+            if (hit && t) {
+                c.worst_depth = std::max(c.worst_depth, std::abs(img.At(x, y, 4) - *t));
+                const Vec3d n(img.At(x, y, 5), img.At(x, y, 6), img.At(x, y, 7));
+                const Vec3d truth = (camera.eye + *t * d).normalized();
+                c.worst_angle = std::max(c.worst_angle, std::acos(std::min(1.0, n.dot(truth))) * 180 / M_PI);
+            }
+            if (each) each(x, y, hit);
+        }
+    return c;
+}
+
 TEST(Render, SphereHeadOnMatchesAnalyticMaskDepthAndNormals) {
     const PointCloud cloud = Sphere();
     RenderOptions opt;
@@ -56,31 +91,13 @@ TEST(Render, SphereHeadOnMatchesAnalyticMaskDepthAndNormals) {
     opt.shadows = false;
     const RenderResult r = Render(cloud, opt);
     const Image& img = r.image;
-    const double pixel_angle = 40.0 / 64 * M_PI / 180;  // one pixel, in radians at the eye
-    int mask_errors = 0, checked = 0;
-    double worst_depth = 0, worst_angle = 0;
-    for (int y = 0; y < 64; ++y)
-        for (int x = 0; x < 64; ++x) {
-            const Vec3d d = opt.camera.Direction(x + 0.5, y + 0.5);
-            const auto t = HitSphere(opt.camera.eye, d);
-            // Distance of the ray from the silhouette, in pixels (rays within one pixel are exempt).
-            const double closest = (opt.camera.eye - opt.camera.eye.dot(d) * d).norm();
-            const double silhouette_px = std::abs(std::asin(std::min(1.0, closest / 4.0)) - std::asin(0.25)) / pixel_angle;
-            const bool hit = img.At(x, y, 3) > 0.5f;
-            if (silhouette_px <= 1.0) continue;
-            ++checked;
-            if (hit != t.has_value()) ++mask_errors;
-            if (hit && t) {
-                worst_depth = std::max(worst_depth, std::abs(img.At(x, y, 4) - *t));
-                const Vec3d n(img.At(x, y, 5), img.At(x, y, 6), img.At(x, y, 7));
-                const Vec3d truth = (opt.camera.eye + *t * d).normalized();
-                worst_angle = std::max(worst_angle, std::acos(std::min(1.0, n.dot(truth))) * 180 / M_PI);
-            }
+    const auto [checked, mask_errors, worst_depth, worst_angle] =
+        CheckAgainstUnitSphere(img, opt.camera, [&](int x, int y, bool hit) {
             if (!hit) {
                 EXPECT_TRUE(std::isinf(img.At(x, y, 4)));
                 EXPECT_EQ(img.At(x, y, 3), 0.0f);
             }
-        }
+        });
     EXPECT_GT(checked, 3000);
     EXPECT_EQ(mask_errors, 0);
     EXPECT_LT(worst_depth, 1e-3);   // within 1e-3 r of the analytic intersection
@@ -519,26 +536,7 @@ TEST(RenderQuality, PreviewHitsTheSampledSphereWithinItsPrecisionAndItsNormalsWi
     const RenderResult r = Render(cloud, opt);
     const double h = r.stats.h;
     EXPECT_FLOAT_EQ(r.stats.precision, kPreviewRelativePrecision * h);
-    const double pixel_angle = 40.0 / 64 * M_PI / 180;
-    int mask_errors = 0, checked = 0;
-    double worst_depth = 0, worst_angle = 0;
-    for (int y = 0; y < 64; ++y)
-        for (int x = 0; x < 64; ++x) {
-            const Vec3d d = opt.camera.Direction(x + 0.5, y + 0.5);
-            const auto t = HitSphere(opt.camera.eye, d);
-            const double closest = (opt.camera.eye - opt.camera.eye.dot(d) * d).norm();
-            const double silhouette_px = std::abs(std::asin(std::min(1.0, closest / 4.0)) - std::asin(0.25)) / pixel_angle;
-            if (silhouette_px <= 1.0) continue;
-            ++checked;
-            const bool hit = r.image.At(x, y, 3) > 0.5f;
-            if (hit != t.has_value()) ++mask_errors;
-            if (hit && t) {
-                worst_depth = std::max(worst_depth, std::abs(r.image.At(x, y, 4) - *t));
-                const Vec3d n(r.image.At(x, y, 5), r.image.At(x, y, 6), r.image.At(x, y, 7));
-                const Vec3d truth = (opt.camera.eye + *t * d).normalized();
-                worst_angle = std::max(worst_angle, std::acos(std::min(1.0, n.dot(truth))) * 180 / M_PI);
-            }
-        }
+    const auto [checked, mask_errors, worst_depth, worst_angle] = CheckAgainstUnitSphere(r.image, opt.camera);
     EXPECT_GT(checked, 3000);
     EXPECT_EQ(mask_errors, 0);
     EXPECT_LT(worst_depth, kPreviewRelativePrecision * h + 1e-3);
